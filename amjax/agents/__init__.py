@@ -1,0 +1,25 @@
+"""Agents: networks, shared rollout / replay / evaluation, and one file per algorithm."""
+
+from amjax.agents.config import AgentConfig, stack_configs, unstack_config
+from amjax.agents.dqn import DQN, DQNConfig
+from amjax.agents.ppo import PPO, PPOConfig
+from amjax.agents.training import Algorithm, EvalRow, RunState, evaluate, init_run, run_evals
+
+ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN)}
+
+__all__ = [
+    "ALGORITHMS",
+    "DQN",
+    "PPO",
+    "AgentConfig",
+    "Algorithm",
+    "DQNConfig",
+    "EvalRow",
+    "PPOConfig",
+    "RunState",
+    "evaluate",
+    "init_run",
+    "run_evals",
+    "stack_configs",
+    "unstack_config",
+]

@@ -1,0 +1,140 @@
+"""Agent configs: frozen pytree dataclasses whose static fields set shapes and whose traced fields are leaves.
+
+A field declared with `static(...)` is part of the pytree's structure: changing it compiles a new program (env id,
+counts, network widths, buffer size). Every other field is a leaf: a sweep stacks many values of it and `vmap`s the
+same compiled program over them (cost, learning rate, gamma, epsilons, ...).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from amjax.envs.registry import make_env
+from amjax.make import make
+from amjax.validation import check_choice, check_positive_int, check_real
+from amjax.wrappers.active_measure import MODES
+from amjax.wrappers.episode_stats import EpisodeStats
+
+_BOUNDS = {
+    "positive": {"low": 0.0, "low_inclusive": False},
+    "nonnegative": {"low": 0.0},
+    "unit": {"low": 0.0, "high": 1.0},
+}
+
+
+def static(default: Any) -> Any:
+    """A config field that sets a shape or a count: part of the compiled program, never vmapped."""
+    return struct.field(pytree_node=False, default=default)
+
+
+@struct.dataclass
+class AgentConfig:
+    """Fields every agent shares: the environment and the training / evaluation budget."""
+
+    env_id: str = static("CartPole-v0")
+    mode: str = static("last")  # what an unmeasured step shows: "last", "random" or "noisy"
+    flag: bool = static(True)  # append the fresh/stale flag to observations
+    vanilla: bool = static(False)  # the plain env: no measure action, no cost (the paper's baseline)
+    total_timesteps: int = static(100_000)  # env steps per configuration (all parallel envs together)
+    eval_every: int = static(10_000)  # env steps between greedy evaluations
+    eval_episodes: int = static(10)  # test episodes per evaluation
+    cost: float = 0.0  # traced: charged per measurement
+    noise_std: float = 0.0  # traced: std of the observation noise in mode "noisy"
+
+    # The allowed range of each traced field of a subclass: "positive" (> 0), "nonnegative" (>= 0) or "unit"
+    # ([0, 1]); every value must be finite.
+    TRACED_BOUNDS: ClassVar[dict[str, str]] = {}
+
+    # -- introspection ----------------------------------------------------------------------------
+
+    @classmethod
+    def static_fields(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in dataclasses.fields(cls) if not f.metadata.get("pytree_node", True))
+
+    @classmethod
+    def traced_fields(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in dataclasses.fields(cls) if f.metadata.get("pytree_node", True))
+
+    def static_key(self) -> tuple[Any, ...]:
+        """Everything that needs its own compiled program (configs with equal keys share one)."""
+        return (type(self).__name__, *(getattr(self, name) for name in self.static_fields()))
+
+    # -- checks -----------------------------------------------------------------------------------
+
+    def validate(self) -> AgentConfig:
+        """Check every field on concrete values (before compiling); returns self."""
+        make_env(self.env_id)  # raises on an unknown id, listing the known ones
+        check_choice("mode", self.mode, MODES)
+        check_choice("flag", self.flag, (True, False))
+        check_choice("vanilla", self.vanilla, (True, False))
+        bounds = {"cost": "nonnegative", "noise_std": "nonnegative", **self.TRACED_BOUNDS}
+        for name, kind in bounds.items():
+            value = getattr(self, name)
+            if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value)):
+                continue  # under vmap/jit: the caller checked the concrete values
+            check_real(name, value, **_BOUNDS[kind])
+        if self.vanilla and not isinstance(self.cost, jax.core.Tracer) and np.any(np.asarray(self.cost)):
+            raise ValueError("cost: a vanilla run has no measurement cost; allowed values: 0")
+        check_positive_int("total_timesteps", self.total_timesteps)
+        check_positive_int("eval_every", self.eval_every)
+        check_positive_int("eval_episodes", self.eval_episodes)
+        steps = self.steps_per_update()
+        if self.eval_every % steps or self.total_timesteps % self.eval_every:
+            raise ValueError(
+                f"eval_every={self.eval_every} must be a multiple of the env steps per update ({steps}) "
+                f"and divide total_timesteps={self.total_timesteps}"
+            )
+        return self
+
+    # -- derived quantities (static) ---------------------------------------------------------------
+
+    def steps_per_update(self) -> int:
+        """Env steps (all parallel envs) consumed by one call of the algorithm's `update`."""
+        raise NotImplementedError
+
+    @property
+    def updates_per_eval(self) -> int:
+        return self.eval_every // self.steps_per_update()
+
+    @property
+    def num_evals(self) -> int:
+        return self.total_timesteps // self.eval_every
+
+    # -- environment ---------------------------------------------------------------------------------
+
+    def make_env(self) -> tuple[Any, Any, int]:
+        """The training env (with episode statistics), its params carrying this config's traced cost and noise,
+        and the episode step limit (for evaluation)."""
+        noisy = self.mode == "noisy"
+        if self.vanilla:
+            env, params = make(self.env_id, vanilla=True)
+            max_steps = params.max_steps_in_episode
+        else:
+            env, params = make(
+                self.env_id, mode=self.mode, flag=self.flag, noise_std=0.0 if noisy else None
+            )
+            params = params.replace(
+                cost=jnp.asarray(self.cost, jnp.float32),
+                noise_std=jnp.asarray(self.noise_std, jnp.float32),
+            )
+            max_steps = params.env_params.max_steps_in_episode
+        return EpisodeStats(env), params, int(max_steps)
+
+
+def stack_configs(configs: list[AgentConfig]) -> AgentConfig:
+    """Stack configs that share their static fields into one config whose traced leaves have a batch axis."""
+    keys = {config.static_key() for config in configs}
+    if len(keys) != 1:
+        raise ValueError("stack_configs: the configs differ in static fields; compile them separately")
+    return jax.tree.map(lambda *xs: jnp.asarray(np.stack(xs), jnp.float32), *configs)
+
+
+def unstack_config(stacked: AgentConfig, index: int) -> AgentConfig:
+    """Configuration `index` of a stacked config."""
+    return jax.tree.map(lambda x: x[index], stacked)

@@ -1,0 +1,210 @@
+"""Proximal Policy Optimization (Schulman et al. 2017) with GAE, as one pure, scanned update.
+
+One `update`: roll out `num_steps` steps of `num_envs` envs -> GAE advantages -> `update_epochs` epochs of
+`num_minibatches` clipped-objective minibatch steps. Truncated episodes bootstrap from the value of the
+pre-reset observation; terminated ones do not.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from amjax.agents.config import AgentConfig, static
+from amjax.agents.networks import ActorCritic
+from amjax.agents.rollout import EnvBatch, reset_envs, rollout
+from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, greedy_policy, make_train
+from amjax.validation import check_choice, check_positive_int
+
+
+@struct.dataclass
+class PPOConfig(AgentConfig):
+    num_envs: int = static(8)
+    num_steps: int = static(128)  # rollout length per env per update
+    update_epochs: int = static(4)
+    num_minibatches: int = static(4)
+    hidden: Sequence[int] = static((64, 64))
+    activation: str = static("tanh")
+    shared_network: bool = static(False)  # one torso for actor and critic
+    anneal_lr: bool = static(True)  # linear decay of the learning rate to 0 over training
+    learning_rate: float = 2.5e-4
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.2
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+
+    TRACED_BOUNDS: ClassVar[dict[str, str]] = {
+        "learning_rate": "positive",
+        "gamma": "unit",
+        "gae_lambda": "unit",
+        "clip_eps": "positive",
+        "ent_coef": "nonnegative",
+        "vf_coef": "nonnegative",
+        "max_grad_norm": "positive",
+    }
+
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.num_steps
+
+    def validate(self) -> PPOConfig:
+        for name in ("num_envs", "num_steps", "update_epochs", "num_minibatches"):
+            check_positive_int(name, getattr(self, name))
+        check_choice("activation", self.activation, ("tanh", "relu", "elu"))
+        if self.steps_per_update() % self.num_minibatches:
+            raise ValueError(
+                f"num_minibatches={self.num_minibatches} must divide num_envs * num_steps "
+                f"= {self.steps_per_update()}"
+            )
+        return super().validate()
+
+
+@struct.dataclass
+class PPOState:
+    params: Any
+    opt_state: Any
+    envs: EnvBatch
+    key: jax.Array
+    updates: jax.Array
+
+
+def _network(config: PPOConfig, env: Any, env_params: Any) -> ActorCritic:
+    num_actions = env.action_space(env_params).n
+    return ActorCritic(num_actions, tuple(config.hidden), config.activation, config.shared_network)
+
+
+def _optimizer(config: PPOConfig) -> optax.GradientTransformation:
+    num_updates = config.total_timesteps // config.steps_per_update()
+    grad_steps = max(num_updates * config.update_epochs * config.num_minibatches, 1)
+
+    def learning_rate(count: jax.Array) -> jax.Array:
+        if not config.anneal_lr:
+            return config.learning_rate
+        return config.learning_rate * (1.0 - jnp.minimum(count, grad_steps) / grad_steps)
+
+    return optax.chain(
+        optax.clip_by_global_norm(config.max_grad_norm),
+        optax.adam(learning_rate, eps=1e-5),
+    )
+
+
+def init(config: PPOConfig, key: jax.Array) -> PPOState:
+    env, env_params, _ = config.make_env()
+    net_key, env_key, key = jax.random.split(key, 3)
+    envs = reset_envs(env, env_params, env_key, config.num_envs)
+    params = _network(config, env, env_params).init(net_key, envs.obs[:1])
+    return PPOState(params, _optimizer(config).init(params), envs, key, jnp.int32(0))
+
+
+def gae(
+    rewards: jax.Array,
+    values: jax.Array,
+    next_values: jax.Array,
+    terminated: jax.Array,
+    done: jax.Array,
+    gamma: jax.Array,
+    gae_lambda: jax.Array,
+) -> tuple[jax.Array, jax.Array]:
+    """Generalized advantage estimates and value targets over a [T, ...] rollout.
+
+    delta_t = r_t + gamma (1 - terminated_t) V(s'_t) - V(s_t), where s'_t is the pre-reset next observation;
+    A_t = delta_t + gamma lambda (1 - done_t) A_{t+1}.
+    """
+    deltas = rewards + gamma * (1.0 - terminated) * next_values - values
+
+    def backward(advantage, step):
+        delta, done_t = step
+        advantage = delta + gamma * gae_lambda * (1.0 - done_t) * advantage
+        return advantage, advantage
+
+    _, advantages = jax.lax.scan(
+        backward, jnp.zeros_like(deltas[0]), (deltas, done.astype(deltas.dtype)), reverse=True
+    )
+    return advantages, advantages + values
+
+
+def update(config: PPOConfig, state: PPOState) -> tuple[PPOState, UpdateStats]:
+    env, env_params, _ = config.make_env()
+    network = _network(config, env, env_params)
+    optimizer = _optimizer(config)
+    rollout_key, epoch_key, key = jax.random.split(state.key, 3)
+
+    # 1. Collect a rollout with the current stochastic policy.
+    def act(batch: EnvBatch, carry: Any, key: jax.Array):
+        logits, value = network.apply(state.params, batch.obs)
+        action = jax.random.categorical(key, logits)
+        log_prob = jax.nn.log_softmax(logits)[jnp.arange(action.shape[0]), action]
+        return action, carry, (log_prob, value)
+
+    envs, _, transitions, (log_probs, values) = rollout(
+        env, env_params, state.envs, None, act, rollout_key, config.num_steps
+    )
+
+    # 2. Advantages; the value of every pre-reset next observation handles truncation.
+    _, next_values = network.apply(state.params, transitions.next_obs)
+    advantages, targets = gae(
+        transitions.reward,
+        values,
+        next_values,
+        transitions.terminated.astype(jnp.float32),
+        transitions.done,
+        config.gamma,
+        config.gae_lambda,
+    )
+
+    # 3. Epochs of minibatch steps on the clipped objective.
+    batch = (transitions.obs, transitions.action, log_probs, values, advantages, targets)
+    batch = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)
+
+    def loss_fn(params, minibatch):
+        obs, action, old_log_prob, old_value, advantage, target = minibatch
+        logits, value = network.apply(params, obs)
+        log_softmax = jax.nn.log_softmax(logits)
+        log_prob = jnp.take_along_axis(log_softmax, action[:, None], -1)[:, 0]
+        value_clipped = old_value + jnp.clip(value - old_value, -config.clip_eps, config.clip_eps)
+        value_loss = 0.5 * jnp.maximum((value - target) ** 2, (value_clipped - target) ** 2).mean()
+        ratio = jnp.exp(log_prob - old_log_prob)
+        advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+        policy_loss = -jnp.minimum(
+            ratio * advantage,
+            jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps) * advantage,
+        ).mean()
+        entropy = -(jnp.exp(log_softmax) * log_softmax).sum(-1).mean()
+        return policy_loss + config.vf_coef * value_loss - config.ent_coef * entropy
+
+    def minibatch_step(carry, minibatch):
+        params, opt_state = carry
+        loss, grads = jax.value_and_grad(loss_fn)(params, minibatch)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), loss
+
+    def epoch(carry, key):
+        order = jax.random.permutation(key, config.steps_per_update())
+        minibatches = jax.tree.map(
+            lambda x: x[order].reshape(config.num_minibatches, -1, *x.shape[1:]), batch
+        )
+        return jax.lax.scan(minibatch_step, carry, minibatches)
+
+    (params, opt_state), losses = jax.lax.scan(
+        epoch, (state.params, state.opt_state), jax.random.split(epoch_key, config.update_epochs)
+    )
+    new_state = PPOState(params, opt_state, envs, key, state.updates + 1)
+    return new_state, UpdateStats(losses.mean(), EpisodeSums.of(transitions))
+
+
+def greedy(config: PPOConfig, state: PPOState):
+    env, env_params, _ = config.make_env()
+    network = _network(config, env, env_params)
+    return greedy_policy(lambda obs: network.apply(state.params, obs)[0])
+
+
+PPO = Algorithm("ppo", PPOConfig, init, update, greedy, params=lambda state: state.params)
+train = make_train(PPO)
+
+__all__ = ["PPO", "PPOConfig", "PPOState", "gae", "train"]

@@ -1,0 +1,96 @@
+"""Batched environment interaction shared by every agent: reset, step, and `lax.scan` rollouts."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from amjax.wrappers.episode_stats import EpisodeTotals
+
+
+@struct.dataclass
+class EnvBatch:
+    """Observations and states of `num_envs` parallel environments; `first` marks an episode's first step."""
+
+    obs: jax.Array
+    state: Any
+    first: jax.Array
+
+
+@struct.dataclass
+class Transition:
+    """One step of every parallel env. `next_obs` is the observation before any auto-reset, so value targets
+    bootstrap correctly on truncation; `done` = terminated or truncated cuts multi-step returns."""
+
+    obs: jax.Array
+    action: jax.Array
+    reward: jax.Array
+    next_obs: jax.Array
+    terminated: jax.Array
+    done: jax.Array
+    measured: jax.Array
+    episode: EpisodeTotals  # totals of the episode that ended here (valid where episode_done)
+    episode_done: jax.Array
+
+
+def reset_envs(env: Any, env_params: Any, key: jax.Array, num_envs: int) -> EnvBatch:
+    obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, num_envs), env_params)
+    return EnvBatch(obs, state, jnp.ones(num_envs, bool))
+
+
+def step_envs(
+    env: Any, env_params: Any, batch: EnvBatch, action: jax.Array, key: jax.Array
+) -> tuple[EnvBatch, Transition]:
+    keys = jax.random.split(key, batch.obs.shape[0])
+    obs, state, reward, terminated, truncated, info = jax.vmap(
+        env.step, in_axes=(0, 0, 0, None)
+    )(keys, batch.state, action, env_params)
+    transition = Transition(
+        obs=batch.obs,
+        action=action,
+        reward=reward,
+        next_obs=info["final_observation"],
+        terminated=terminated,
+        done=jnp.logical_or(terminated, truncated),
+        measured=info["measured"],
+        episode=info["episode"],
+        episode_done=info["episode_done"],
+    )
+    return EnvBatch(obs, state, transition.done), transition
+
+
+# act(batch, agent_carry, key) -> (action, agent_carry, extras). `agent_carry` is a recurrent agent's hidden
+# state (reset where `batch.first`), or None.
+ActFn = Callable[[EnvBatch, Any, jax.Array], tuple[jax.Array, Any, Any]]
+
+
+def rollout(
+    env: Any,
+    env_params: Any,
+    batch: EnvBatch,
+    agent_carry: Any,
+    act: ActFn,
+    key: jax.Array,
+    num_steps: int,
+) -> tuple[EnvBatch, Any, Transition, Any]:
+    """Step every env `num_steps` times with `act`.
+
+    Returns the final batch and agent carry, the stacked transitions [num_steps, num_envs, ...] and the stacked
+    extras (for example the log-probabilities and values PPO keeps).
+    """
+
+    def one_step(carry: tuple[EnvBatch, Any], step_key: jax.Array):
+        batch, agent_carry = carry
+        act_key, env_key = jax.random.split(step_key)
+        action, agent_carry, extras = act(batch, agent_carry, act_key)
+        batch, transition = step_envs(env, env_params, batch, action, env_key)
+        return (batch, agent_carry), (transition, extras)
+
+    (batch, agent_carry), (transitions, extras) = jax.lax.scan(
+        one_step, (batch, agent_carry), jax.random.split(key, num_steps)
+    )
+    return batch, agent_carry, transitions, extras

@@ -1,0 +1,251 @@
+"""The training driver every algorithm shares: updates -> periodic greedy evaluation -> reduced metrics.
+
+An algorithm supplies `init(config, key)`, `update(config, state)` (one iteration: collect + learn) and
+`greedy(config, state)` (its evaluation policy). The driver scans `updates_per_eval` updates, evaluates
+`eval_episodes` test episodes, and emits one small `EvalRow` per evaluation: memory grows with the number of
+evaluations, never with the number of environment steps. A configuration whose loss or parameters stop being finite
+is marked diverged and keeps that mark; it shares nothing with its neighbours in a vmapped sweep.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from amjax.agents.config import AgentConfig
+from amjax.agents.rollout import ActFn, EnvBatch, Transition, reset_envs, step_envs
+
+Policy = tuple[ActFn, Any]  # (act function, its initial agent carry for a batch of envs; None if memoryless)
+
+
+@struct.dataclass
+class EpisodeSums:
+    """Sums over finished episodes (divide by `count` for means)."""
+
+    count: jax.Array
+    costed_return: jax.Array
+    raw_return: jax.Array
+    length: jax.Array
+    measurements: jax.Array
+
+    @classmethod
+    def of(cls, transitions: Transition) -> EpisodeSums:
+        """Reduce the finished episodes in a batch of transitions (any leading axes)."""
+        done = transitions.episode_done.astype(jnp.float32)
+        ep = transitions.episode
+        return cls(
+            count=done.sum(),
+            costed_return=(done * ep.costed_return).sum(),
+            raw_return=(done * ep.raw_return).sum(),
+            length=(done * ep.length).sum(),
+            measurements=(done * ep.measurements).sum(),
+        )
+
+    def means(self) -> dict[str, jax.Array]:
+        count = jnp.where(self.count > 0, self.count, jnp.nan)
+        return {
+            "costed_return": self.costed_return / count,
+            "raw_return": self.raw_return / count,
+            "length": self.length / count,
+            "measurements": self.measurements / count,
+        }
+
+
+@struct.dataclass
+class UpdateStats:
+    """What one `update` reports: its loss and the training episodes that finished during it."""
+
+    loss: jax.Array
+    episodes: EpisodeSums
+
+
+@struct.dataclass
+class EvalRow:
+    """One evaluation point of one configuration (means over test / training episodes)."""
+
+    env_steps: jax.Array
+    eval_return: jax.Array  # greedy test episodes, costed reward
+    eval_raw_return: jax.Array
+    eval_length: jax.Array
+    eval_measurements: jax.Array  # paid measurements per test episode
+    train_return: jax.Array  # training episodes finished since the last evaluation (NaN if none)
+    train_raw_return: jax.Array
+    train_length: jax.Array
+    train_measurements: jax.Array
+    loss: jax.Array  # mean over the updates since the last evaluation
+    diverged: jax.Array  # a loss or a parameter has been non-finite at some point so far
+
+
+@struct.dataclass
+class RunState:
+    """The whole state of one training run between evaluations (checkpointable)."""
+
+    algo: Any
+    key: jax.Array  # for evaluation episodes
+    evals_done: jax.Array
+    best_return: jax.Array  # best greedy test costed return so far (the paper's metric)
+    best_measured_fraction: jax.Array  # measured fraction of steps at that best evaluation
+    diverged: jax.Array
+
+
+@dataclass(frozen=True)
+class Algorithm:
+    """An algorithm as three pure functions plus its config type and network-parameter accessor."""
+
+    name: str
+    config_type: type[AgentConfig]
+    init: Callable[[AgentConfig, jax.Array], Any]
+    update: Callable[[AgentConfig, Any], tuple[Any, UpdateStats]]
+    greedy: Callable[[AgentConfig, Any], Policy]
+    params: Callable[[Any], Any]
+
+
+def evaluate(
+    env: Any,
+    env_params: Any,
+    max_steps: int,
+    policy: Policy,
+    key: jax.Array,
+    num_episodes: int,
+) -> EpisodeSums:
+    """Run `num_episodes` test episodes in parallel to their end; sums of their statistics."""
+    act, carry = policy
+    reset_key, run_key = jax.random.split(key)
+    batch = reset_envs(env, env_params, reset_key, num_episodes)
+    finished = jnp.zeros(num_episodes, bool)
+
+    def one_step(carry_, step_key):
+        batch, agent_carry, finished = carry_
+        act_key, env_key = jax.random.split(step_key)
+        action, agent_carry, _ = act(batch, agent_carry, act_key)
+        batch, transition = step_envs(env, env_params, batch, action, env_key)
+        first_end = transition.episode_done & ~finished
+        return (batch, agent_carry, finished | transition.episode_done), transition.replace(
+            episode_done=first_end
+        )
+
+    # Every episode ends within `max_steps` (the time limit truncates it).
+    _, transitions = jax.lax.scan(
+        one_step, (batch, carry, finished), jax.random.split(run_key, max_steps)
+    )
+    return EpisodeSums.of(transitions)
+
+
+def _all_finite(tree: Any) -> jax.Array:
+    return jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
+
+
+def init_run(algo: Algorithm, config: AgentConfig, key: jax.Array) -> RunState:
+    """The initial `RunState` of one configuration."""
+    algo_key, eval_key = jax.random.split(key)
+    return RunState(
+        algo=algo.init(config, algo_key),
+        key=eval_key,
+        evals_done=jnp.int32(0),
+        best_return=jnp.float32(-jnp.inf),
+        best_measured_fraction=jnp.float32(jnp.nan),
+        diverged=jnp.bool_(False),
+    )
+
+
+def run_evals(
+    algo: Algorithm, config: AgentConfig, state: RunState, num_evals: int
+) -> tuple[RunState, EvalRow]:
+    """Train for `num_evals` evaluation periods; returns the new state and one `EvalRow` per period."""
+    env, env_params, max_steps = config.make_env()
+
+    def one_period(state: RunState, _):
+        algo_state, stats = jax.lax.scan(
+            lambda s, _: algo.update(config, s), state.algo, None, config.updates_per_eval
+        )
+        train = jax.tree.map(lambda x: x.sum(0), stats.episodes).means()
+        loss = stats.loss.mean()
+        test = evaluate(
+            env,
+            env_params,
+            max_steps,
+            algo.greedy(config, algo_state),
+            jax.random.fold_in(state.key, state.evals_done),
+            config.eval_episodes,
+        ).means()
+        diverged = state.diverged | ~jnp.isfinite(loss) | ~_all_finite(algo.params(algo_state))
+        improved = (test["costed_return"] > state.best_return) & ~diverged
+        evals_done = state.evals_done + 1
+        row = EvalRow(
+            env_steps=evals_done * config.eval_every,
+            eval_return=test["costed_return"],
+            eval_raw_return=test["raw_return"],
+            eval_length=test["length"],
+            eval_measurements=test["measurements"],
+            train_return=train["costed_return"],
+            train_raw_return=train["raw_return"],
+            train_length=train["length"],
+            train_measurements=train["measurements"],
+            loss=loss,
+            diverged=diverged,
+        )
+        state = RunState(
+            algo=algo_state,
+            key=state.key,
+            evals_done=evals_done,
+            best_return=jnp.where(improved, test["costed_return"], state.best_return),
+            best_measured_fraction=jnp.where(
+                improved, test["measurements"] / test["length"], state.best_measured_fraction
+            ),
+            diverged=diverged,
+        )
+        return state, row
+
+    return jax.lax.scan(one_period, state, None, num_evals)
+
+
+def make_train(algo: Algorithm) -> Callable[[AgentConfig, jax.Array], tuple[RunState, EvalRow]]:
+    """`train(config, key) -> (final RunState, EvalRow per evaluation)`: a whole run as one jitted program.
+
+    Concrete configs are validated before compiling; under `jax.vmap` (a stacked config of traced leaves) the
+    static fields are still checked and the traced ones are left to the caller (the sweep runner checks them).
+    """
+
+    @jax.jit
+    def compiled(config: AgentConfig, key: jax.Array) -> tuple[RunState, EvalRow]:
+        return run_evals(algo, config, init_run(algo, config, key), config.num_evals)
+
+    def train(config: AgentConfig, key: jax.Array) -> tuple[RunState, EvalRow]:
+        if not isinstance(config, algo.config_type):
+            raise TypeError(f"config: expected {algo.config_type.__name__}, got {type(config).__name__}")
+        config.validate()
+        return compiled(config, key)
+
+    train.__doc__ = f"Train {algo.name}: `train(config, key) -> (RunState, EvalRow per evaluation)`."
+    return train
+
+
+def greedy_policy(q_or_logits: Callable[[jax.Array], jax.Array]) -> Policy:
+    """A memoryless policy taking the argmax of `q_or_logits(obs)`."""
+
+    def act(batch: EnvBatch, carry: Any, key: jax.Array):
+        return jnp.argmax(q_or_logits(batch.obs), axis=-1), carry, None
+
+    return act, None
+
+
+__all__ = [
+    "Algorithm",
+    "EpisodeSums",
+    "EvalRow",
+    "Policy",
+    "RunState",
+    "UpdateStats",
+    "evaluate",
+    "greedy_policy",
+    "init_run",
+    "make_train",
+    "partial",
+    "run_evals",
+]

@@ -1,0 +1,55 @@
+"""The environment registry: ids -> pure-JAX (gymnax API) environments and their default params."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import gymnax
+from gymnax.environments.environment import Environment
+
+EnvFactory = Callable[[], tuple[Environment, Any]]
+
+
+def _cartpole_v0() -> tuple[Environment, Any]:
+    # Gymnasium's CartPole-v0 is CartPole-v1 with a 200-step limit (the paper's setting).
+    env, params = gymnax.make("CartPole-v1")
+    return env, params.replace(max_steps_in_episode=200)
+
+
+def _lunar_lander() -> tuple[Environment, Any]:
+    from amjax.envs.lunar_lander import LunarLander
+
+    env = LunarLander()
+    return env, env.default_params
+
+
+_AMJAX_ENVS: dict[str, EnvFactory] = {
+    "CartPole-v0": _cartpole_v0,
+    "LunarLander-v3": _lunar_lander,
+}
+_CUSTOM_ENVS: dict[str, EnvFactory] = {}
+
+
+def register(env_id: str, factory: EnvFactory) -> None:
+    """Register `factory() -> (env, default_params)` under `env_id` (a gymnax-API environment)."""
+    if not isinstance(env_id, str) or not env_id:
+        raise ValueError(f"env_id must be a non-empty string, got {env_id!r}")
+    _CUSTOM_ENVS[env_id] = factory
+
+
+def registered_envs() -> list[str]:
+    """Every id `make_env` accepts: amjax's own, user-registered ones, and gymnax's."""
+    return sorted(set(_AMJAX_ENVS) | set(_CUSTOM_ENVS) | set(gymnax.registered_envs))
+
+
+def make_env(env_id: str) -> tuple[Environment, Any]:
+    """Build the plain (unwrapped) environment `env_id` and its default params."""
+    for table in (_CUSTOM_ENVS, _AMJAX_ENVS):
+        if env_id in table:
+            return table[env_id]()
+    if env_id in gymnax.registered_envs:
+        return gymnax.make(env_id)
+    raise ValueError(
+        f"env_id: unknown environment {env_id!r}; allowed values: {', '.join(registered_envs())}"
+    )

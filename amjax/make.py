@@ -1,0 +1,57 @@
+"""`amjax.make`: an environment id -> an active-measure environment and its params."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax.numpy as jnp
+from gymnax.environments.environment import Environment
+
+from amjax.envs.registry import make_env
+from amjax.validation import check_choice, check_real
+from amjax.wrappers.active_measure import MODES, ActiveMeasure, AlwaysMeasured, MeasureParams
+
+
+def make(
+    env_id: str,
+    cost: Any = 0.0,
+    mode: str = "last",
+    flag: bool = True,
+    noise_std: Any = None,
+    vanilla: bool = False,
+) -> tuple[Environment, Any]:
+    """Build `env_id` wrapped as an active-measure MDP; returns `(env, params)`.
+
+    Args:
+      env_id: "CartPole-v0" (200 steps, the paper's), "CartPole-v1", "Acrobot-v1", "LunarLander-v3", any
+        gymnax id, or one added with `amjax.envs.register`.
+      cost: charged per measurement (>= 0, finite). A number or an array of numbers (then vmap over params).
+      mode: what the agent sees without measuring: "last" (the last measured observation), "random"
+        (a sample of the observation space) or "noisy" (true observation + N(0, noise_std^2)).
+      flag: append 1 (fresh) / 0 (stale) to the observation.
+      noise_std: standard deviation for mode "noisy" (required there, refused elsewhere).
+      vanilla: return the plain environment instead (always measured, cost 0, same info keys).
+    """
+    check_choice("vanilla", vanilla, (True, False))
+    env, env_params = make_env(env_id)
+    if vanilla:
+        if noise_std is not None or mode != "last" or check_real("cost", cost).any():
+            raise ValueError("vanilla=True takes no cost, mode or noise_std: it never hides a state")
+        return AlwaysMeasured(env), env_params
+    check_choice("mode", mode, MODES)
+    cost = check_real("cost", cost, low=0.0)
+    if mode == "noisy":
+        if noise_std is None:
+            raise ValueError("noise_std: mode='noisy' needs noise_std, a finite number >= 0")
+        noise_std = check_real("noise_std", noise_std, low=0.0)
+    elif noise_std is not None:
+        raise ValueError(f"noise_std is only used with mode='noisy' (mode is {mode!r})")
+    else:
+        noise_std = 0.0
+    wrapped = ActiveMeasure(env, mode=mode, flag=flag, env_params=env_params)
+    params = MeasureParams(
+        env_params=env_params,
+        cost=jnp.asarray(cost, jnp.float32),
+        noise_std=jnp.asarray(noise_std, jnp.float32),
+    )
+    return wrapped, params

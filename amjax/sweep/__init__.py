@@ -1,0 +1,6 @@
+"""Sweeps: grids of configurations trained in compiled vmapped batches, with results, summaries and resume."""
+
+from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
+from amjax.sweep.runner import SweepMismatchError, SweepResult, run_sweep
+
+__all__ = ["RunConfig", "SweepMismatchError", "SweepResult", "SweepSpec", "expand", "group_runs", "run_sweep"]

@@ -1,0 +1,159 @@
+"""Sweep grids: the cartesian product envs x agents x costs x seeds x hyperparameter values, split into groups
+that share one compiled program (same env, agent and static fields); within a group everything is vmapped."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import itertools
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from amjax.agents import ALGORITHMS, AgentConfig
+from amjax.envs.registry import make_env
+from amjax.validation import check_choice, check_positive_int, check_real
+
+# Fields that define the sweep's schedule and evaluation points: one value for the whole sweep.
+SCHEDULE_FIELDS = ("total_timesteps", "eval_every", "eval_episodes")
+# Fields the grid itself sets.
+GRID_FIELDS = ("env_id", "cost", "vanilla")
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """What to train: every combination of the listed values.
+
+    `hyperparams` maps a config field to the values to sweep (a list) or one value; it applies to every agent
+    whose config has that field. Traced fields (learning rate, gamma, ...) are vmapped within one compiled
+    program; static fields (network widths, num_envs, ...) compile one program per value. `vanilla` adds, per env,
+    agent and seed, a run on the plain environment (the paper's baseline).
+    """
+
+    envs: tuple[str, ...] = ("CartPole-v0",)
+    agents: tuple[str, ...] = ("dqn", "ppo")
+    costs: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3)
+    seeds: tuple[int, ...] = tuple(range(3))
+    total_timesteps: int = 100_000
+    eval_every: int = 10_000
+    eval_episodes: int = 10
+    vanilla: bool = False
+    mode: str = "last"
+    hyperparams: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return json.loads(json.dumps(dataclasses.asdict(self), default=list))
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> SweepSpec:
+        data = dict(data)
+        for name in ("envs", "agents", "costs", "seeds"):
+            data[name] = tuple(data[name])
+        return cls(**data)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """One configuration of the grid: its identity, its seed and its full agent config."""
+
+    config_id: str
+    env: str
+    agent: str
+    vanilla: bool
+    cost: float
+    seed: int
+    hyperparams: dict[str, Any]  # the swept values of this configuration (only the swept fields)
+    config: AgentConfig
+
+
+def _as_values(name: str, value: Any) -> list[Any]:
+    if isinstance(value, list | tuple) and not (name == "hidden" and value and isinstance(value[0], int)):
+        if not value:
+            raise ValueError(f"{name}: an empty list of values")
+        return list(value)
+    return [value]
+
+
+def validate_spec(spec: SweepSpec) -> None:
+    """Check the whole spec on concrete values (before anything is written or compiled)."""
+    if not spec.envs or not spec.agents or not spec.seeds:
+        raise ValueError("envs, agents and seeds must each name at least one value")
+    for env_id in spec.envs:
+        make_env(env_id)
+    for agent in spec.agents:
+        check_choice("agent", agent, sorted(ALGORITHMS))
+    if not spec.costs and not spec.vanilla:
+        raise ValueError("costs: give at least one cost (or vanilla runs)")
+    for cost in spec.costs:
+        check_real("cost", cost, low=0.0)
+    for seed in spec.seeds:
+        check_positive_int("seed", seed, minimum=0)
+    if len(set(spec.seeds)) != len(spec.seeds):
+        raise ValueError(f"seeds: repeated values in {list(spec.seeds)}")
+    for name, value in spec.hyperparams.items():
+        if name in SCHEDULE_FIELDS:
+            raise ValueError(
+                f"{name} is set for the whole sweep (--steps / --eval-every / --eval-episodes), "
+                "not as a hyperparameter"
+            )
+        if name in GRID_FIELDS or name == "mode":
+            raise ValueError(f"{name} is a grid axis; use its own option, not a hyperparameter")
+        owners = [a for a in spec.agents if name in ALGORITHMS[a].config_type.__dataclass_fields__]
+        if not owners:
+            raise ValueError(
+                f"hyperparameter {name!r} belongs to none of the agents {list(spec.agents)}; "
+                f"allowed: {', '.join(sorted(_all_fields(spec.agents)))}"
+            )
+        _as_values(name, value)
+
+
+def _all_fields(agents: Sequence[str]) -> set[str]:
+    names = set()
+    for agent in agents:
+        names |= set(ALGORITHMS[agent].config_type.__dataclass_fields__)
+    return names - set(SCHEDULE_FIELDS) - set(GRID_FIELDS) - {"mode", "noise_std", "flag"}
+
+
+def config_id(env: str, agent: str, vanilla: bool, cost: float, seed: int, hp: Mapping[str, Any]) -> str:
+    """A stable short id of a configuration (the same in every rerun of the same sweep)."""
+    text = json.dumps([env, agent, vanilla, float(cost), int(seed), sorted(hp.items())], default=list)
+    return hashlib.sha1(text.encode()).hexdigest()[:12]
+
+
+def expand(spec: SweepSpec) -> list[RunConfig]:
+    """Every configuration of the sweep, each with its validated agent config."""
+    validate_spec(spec)
+    runs = []
+    for env, agent in itertools.product(spec.envs, spec.agents):
+        config_type = ALGORITHMS[agent].config_type
+        own = {k: _as_values(k, v) for k, v in spec.hyperparams.items() if k in config_type.__dataclass_fields__}
+        settings = [(False, float(c)) for c in spec.costs] + ([(True, 0.0)] if spec.vanilla else [])
+        for (vanilla, cost), values, seed in itertools.product(
+            settings, itertools.product(*own.values()), spec.seeds
+        ):
+            hp = dict(zip(own, values, strict=True))
+            config = config_type(
+                env_id=env,
+                mode=spec.mode,
+                vanilla=vanilla,
+                cost=cost,
+                total_timesteps=spec.total_timesteps,
+                eval_every=spec.eval_every,
+                eval_episodes=spec.eval_episodes,
+                **{k: tuple(v) if isinstance(v, list) else v for k, v in hp.items()},
+            )
+            config.validate()
+            runs.append(
+                RunConfig(config_id(env, agent, vanilla, cost, seed, hp), env, agent, vanilla, cost, seed, hp,
+                          config)
+            )
+    return runs
+
+
+def group_runs(runs: Sequence[RunConfig]) -> list[list[RunConfig]]:
+    """Split runs into groups sharing every static field (one compiled program each), in grid order."""
+    groups: dict[tuple[Any, ...], list[RunConfig]] = {}
+    for run in runs:
+        groups.setdefault(run.config.static_key(), []).append(run)
+    return list(groups.values())

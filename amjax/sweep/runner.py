@@ -1,0 +1,192 @@
+"""The sweep runner: every group of configurations that shares a compiled program is trained as one vmapped
+batch, in chunks of evaluation periods, with progress, results written after each chunk and train states
+checkpointed, so that killing the process at any moment and rerunning the same call resumes where it stopped.
+
+Results and checkpoints are written atomically, results first: a rerun recomputes at most the work after the
+last checkpoint (training is deterministic), and rows are keyed by (config_id, env_steps) so none is duplicated.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+from tqdm.auto import tqdm
+
+from amjax.agents import ALGORITHMS, Algorithm, EvalRow, init_run, run_evals, stack_configs
+from amjax.sweep import storage
+from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
+
+
+class SweepMismatchError(ValueError):
+    """The output folder holds a different sweep."""
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    out: Path
+    results: pd.DataFrame  # one row per configuration x evaluation point
+    summary: pd.DataFrame  # one row per configuration
+    table: pd.DataFrame  # median / IQR over seeds
+
+
+def _chunk_evals(num_evals: int, target_chunks: int) -> int:
+    """The largest divisor of num_evals giving at least `target_chunks` chunks (or 1)."""
+    want = max(1, num_evals // max(target_chunks, 1))
+    return max(d for d in range(1, want + 1) if num_evals % d == 0)
+
+
+@dataclass
+class _Batch:
+    """Up to `max_batch` configurations of one group, padded to a fixed size so every batch of a group shares
+    one compiled program."""
+
+    name: str
+    algo: Algorithm
+    runs: list[RunConfig]
+    size: int
+
+    def stacked(self) -> tuple[Any, jax.Array]:
+        padded = self.runs + [self.runs[-1]] * (self.size - len(self.runs))
+        configs = stack_configs([r.config for r in padded])
+        keys = jnp.stack([jax.random.PRNGKey(r.seed) for r in padded])
+        return configs, keys
+
+
+def _batches(runs: Sequence[RunConfig], max_batch: int) -> list[_Batch]:
+    batches = []
+    for group in group_runs(runs):
+        algo = ALGORITHMS[group[0].agent]
+        count = math.ceil(len(group) / max_batch)
+        size = math.ceil(len(group) / count)
+        for i in range(count):
+            part = group[i * size : (i + 1) * size]
+            batches.append(_Batch(f"{group[0].agent}-{part[0].config_id}", algo, part, size))
+    return batches
+
+
+def _compiled(algo: Algorithm, chunk_evals: int) -> tuple[Callable, Callable]:
+    # Initialisation runs configuration by configuration (lax.map), not vmapped: cheap, and it keeps batched
+    # linear algebra out of network initialisation (the jaxlib CPU deadlock in the research notes).
+    init = jax.jit(lambda configs, keys: jax.lax.map(lambda ck: init_run(algo, *ck), (configs, keys)))
+    chunk = jax.jit(
+        jax.vmap(lambda config, state: run_evals(algo, config, state, chunk_evals)), donate_argnums=1
+    )
+    return init, chunk
+
+
+def _rows(batch: _Batch, rows: EvalRow, hyper_columns: list[str]) -> pd.DataFrame:
+    """The evaluation rows of the real (unpadded) configurations of a batch as a tidy table."""
+    arrays = {k: np.asarray(v)[: len(batch.runs)] for k, v in vars(rows).items()}
+    num_evals = arrays["env_steps"].shape[1]
+    frame = {
+        "config_id": np.repeat([r.config_id for r in batch.runs], num_evals),
+        "env": np.repeat([r.env for r in batch.runs], num_evals),
+        "agent": np.repeat([r.agent for r in batch.runs], num_evals),
+        "vanilla": np.repeat([r.vanilla for r in batch.runs], num_evals),
+        "cost": np.repeat([r.cost for r in batch.runs], num_evals),
+        "seed": np.repeat([r.seed for r in batch.runs], num_evals),
+    }
+    for name in hyper_columns:
+        frame[name] = np.repeat([_cell(r.hyperparams.get(name)) for r in batch.runs], num_evals)
+    frame.update({k: v.reshape(-1) for k, v in arrays.items()})
+    table = pd.DataFrame(frame)
+    table["eval_measured_fraction"] = table.eval_measurements / table.eval_length
+    return table
+
+
+def _cell(value: Any) -> Any:
+    return "x".join(map(str, value)) if isinstance(value, list | tuple) else value
+
+
+def run_sweep(
+    spec: SweepSpec,
+    out: str | Path,
+    *,
+    max_batch: int = 1024,
+    target_chunks: int = 10,
+    checkpoint_every_s: float = 60.0,
+    progress: bool = True,
+    on_chunk: Callable[[pd.DataFrame], None] | None = None,
+) -> SweepResult:
+    """Train every configuration of `spec`, writing results under `out`; resumes a sweep already there.
+
+    Args:
+      max_batch: most configurations compiled into one vmapped batch (bounds memory; DQN's replay buffers
+        take configurations x buffer_size x transition size).
+      target_chunks: evaluation periods are run in about this many jitted chunks per batch; results are
+        written after each chunk.
+      checkpoint_every_s: train states are checkpointed after a chunk when this many seconds have passed
+        since the last checkpoint (and always at the end of a batch).
+      on_chunk: called with the full results table after every chunk (e.g. to draw live plots).
+    """
+    runs = expand(spec)  # validates everything before touching the disk
+    out = Path(out)
+    meta_path = out / "metadata.json"
+    if meta_path.exists():
+        stored = json.loads(meta_path.read_text()).get("spec")
+        if stored != spec.to_json():
+            raise SweepMismatchError(
+                f"out: {out} holds a different sweep (see its metadata.json); choose another folder"
+            )
+    else:
+        storage.write_json(meta_path, {"spec": spec.to_json(), **storage.environment_info()})
+
+    hyper_columns = sorted({k for r in runs for k in r.hyperparams})
+    results = storage.read_table(out / "results")
+    batches = _batches(runs, max_batch)
+    total_steps = len(runs) * spec.total_timesteps
+    bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
+    compiled: dict[tuple[str, Any], tuple[Callable, Callable]] = {}
+    for batch in batches:
+        config0 = batch.runs[0].config
+        num_evals = config0.num_evals
+        chunk_evals = _chunk_evals(num_evals, target_chunks)
+        ckpt_path = out / "checkpoints" / f"{batch.name}.msgpack"
+        cache_key = (config0.static_key(), batch.size)
+        if cache_key not in compiled:
+            compiled[cache_key] = _compiled(batch.algo, chunk_evals)
+        init, chunk = compiled[cache_key]
+        configs, keys = batch.stacked()
+        states = init(configs, keys)
+        evals_done = 0
+        if ckpt_path.exists():
+            states, evals_done = storage.load_checkpoint(ckpt_path, states)
+        bar.update(len(batch.runs) * evals_done * config0.eval_every)
+        bar.set_description(f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs)")
+        last_checkpoint = time.monotonic()
+        while evals_done < num_evals:
+            start = time.monotonic()
+            states, rows = chunk(configs, states)
+            rows = jax.device_get(rows)
+            evals_done += chunk_evals
+            results = storage.merge_rows(results, _rows(batch, rows, hyper_columns))
+            storage.write_table(out / "results", results)
+            if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
+                storage.save_checkpoint(ckpt_path, states, evals_done)
+                last_checkpoint = time.monotonic()
+            steps = len(batch.runs) * chunk_evals * config0.eval_every
+            best = np.nanmedian(np.asarray(states.best_return)[: len(batch.runs)])
+            bar.set_postfix(
+                {"steps/s": f"{steps / (time.monotonic() - start):.3g}", "median best": f"{best:.1f}"}
+            )
+            bar.update(steps)
+            if on_chunk is not None:
+                on_chunk(results)
+    bar.close()
+    if results is None:
+        results = pd.DataFrame()
+    summary = storage.summarize(results, hyper_columns)
+    table = storage.seed_table(summary, hyper_columns)
+    storage.write_table(out / "summary", summary)
+    storage.write_table(out / "seed_summary", table)
+    return SweepResult(out, results, summary, table)

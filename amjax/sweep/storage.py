@@ -1,0 +1,171 @@
+"""Files of a sweep: atomic writes, msgpack checkpoints of train states, the tidy results table and summaries.
+
+Layout of an output folder:
+  metadata.json        the sweep spec, package versions, git revision (written once; identifies the sweep)
+  results.parquet/.csv one row per configuration x evaluation point
+  summary.parquet/.csv one row per configuration: best costed reward, final values, measurement reduction
+  checkpoints/*.msgpack  train states of each compiled batch (for resuming), no pickle
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import tempfile
+from collections.abc import Callable
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+import pandas as pd
+from flax import serialization
+
+KEY_COLUMNS = ["config_id", "env_steps"]
+
+
+def atomic_write(path: Path, write: Callable[[str], None]) -> None:
+    """Call `write(tmp_path)` then rename over `path`: readers see the old file or the new one, never half."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: Path, data: Any) -> None:
+    atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2, default=str) + "\n"))
+
+
+def write_table(path_stem: Path, table: pd.DataFrame) -> None:
+    """Write `table` as Parquet and CSV, each atomically."""
+    atomic_write(path_stem.with_suffix(".parquet"), lambda tmp: table.to_parquet(tmp, index=False))
+    atomic_write(path_stem.with_suffix(".csv"), lambda tmp: table.to_csv(tmp, index=False))
+
+
+def read_table(path_stem: Path) -> pd.DataFrame | None:
+    path = path_stem.with_suffix(".parquet")
+    return pd.read_parquet(path) if path.exists() else None
+
+
+def merge_rows(old: pd.DataFrame | None, new: pd.DataFrame) -> pd.DataFrame:
+    """Append `new` rows; a (config_id, env_steps) already present is replaced, never duplicated."""
+    table = new if old is None else pd.concat([old, new], ignore_index=True)
+    table = table.drop_duplicates(KEY_COLUMNS, keep="last")
+    return table.sort_values(KEY_COLUMNS, kind="stable").reset_index(drop=True)
+
+
+# -- checkpoints -----------------------------------------------------------------------------------------
+
+
+def save_checkpoint(path: Path, state: Any, evals_done: int) -> None:
+    """Save a pytree of arrays (any structure) with msgpack; restore it with `load_checkpoint`."""
+    leaves = [np.asarray(x) for x in jax.tree.leaves(state)]
+    payload = {"evals_done": evals_done, "leaves": {str(i): x for i, x in enumerate(leaves)}}
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(serialization.msgpack_serialize(payload)))
+
+
+def load_checkpoint(path: Path, like: Any) -> tuple[Any, int]:
+    """Restore a checkpoint into the structure of `like`; raise ValueError if it does not fit."""
+    try:
+        payload = serialization.msgpack_restore(path.read_bytes())
+        stored = [payload["leaves"][str(i)] for i in range(len(payload["leaves"]))]
+        evals_done = int(payload["evals_done"])
+    except Exception as error:  # corrupt or truncated file
+        raise ValueError(f"checkpoint {path} is unreadable ({error}); delete it to restart that batch") from None
+    leaves, treedef = jax.tree.flatten(like)
+    if len(stored) != len(leaves) or any(
+        s.shape != np.shape(x) or s.dtype != np.asarray(x).dtype for s, x in zip(stored, leaves, strict=True)
+    ):
+        raise ValueError(f"checkpoint {path} does not match this sweep's train state; delete it to restart")
+    return jax.tree.unflatten(treedef, stored), evals_done
+
+
+# -- metadata ----------------------------------------------------------------------------------------------
+
+
+def environment_info() -> dict[str, Any]:
+    """Package versions, git revision and machine, for the metadata file."""
+    versions = {}
+    for name in ("amjax", "jax", "jaxlib", "flax", "optax", "gymnax", "numpy", "pandas"):
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    try:
+        revision = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=Path(__file__).parent,
+            timeout=5,
+        ).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        revision = None
+    return {
+        "versions": versions,
+        "git_revision": revision,
+        "python": platform.python_version(),
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+        "jax_backend": jax.default_backend(),
+    }
+
+
+# -- summaries -----------------------------------------------------------------------------------------------
+
+ID_COLUMNS = ["config_id", "env", "agent", "vanilla", "cost", "seed"]
+
+
+def summarize(results: pd.DataFrame, hyper_columns: list[str]) -> pd.DataFrame:
+    """Per configuration: best greedy costed reward (the paper's metric; diverged points excluded), the
+    measured fraction at that point, final values, and the reduction in measurements vs always measuring."""
+    rows = []
+    results = results.assign(measured_fraction=results.eval_measurements / results.eval_length)
+    for _, runs in results.groupby("config_id", sort=False):
+        runs = runs.sort_values("env_steps")
+        healthy = runs[~runs.diverged & runs.eval_return.notna()]
+        final = runs.iloc[-1]
+        best = healthy.loc[healthy.eval_return.idxmax()] if len(healthy) else None
+        row = {c: final[c] for c in ID_COLUMNS + hyper_columns}
+        row.update(
+            env_steps=int(final.env_steps),
+            best_return=np.nan if best is None else best.eval_return,
+            best_raw_return=np.nan if best is None else best.eval_raw_return,
+            best_measured_fraction=np.nan if best is None else best.measured_fraction,
+            best_env_steps=np.nan if best is None else best.env_steps,
+            final_return=final.eval_return,
+            final_raw_return=final.eval_raw_return,
+            final_measured_fraction=final.measured_fraction,
+            measurement_reduction=np.nan if best is None else 1.0 - best.measured_fraction,
+            diverged=bool(runs.diverged.any()),
+        )
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def seed_table(summary: pd.DataFrame, hyper_columns: list[str]) -> pd.DataFrame:
+    """Median and interquartile range over seeds of best costed reward and measured fraction, per env x agent x
+    vanilla x cost (x swept hyperparameters)."""
+    keys = ["env", "agent", "vanilla", "cost", *hyper_columns]
+
+    def q(p: float) -> Callable[[pd.Series], float]:
+        return lambda s: s.quantile(p)
+
+    table = summary.groupby(keys, dropna=False, sort=False).agg(
+        seeds=("seed", "count"),
+        diverged=("diverged", "sum"),
+        best_return_median=("best_return", "median"),
+        best_return_q25=("best_return", q(0.25)),
+        best_return_q75=("best_return", q(0.75)),
+        measured_fraction_median=("best_measured_fraction", "median"),
+        measured_fraction_q25=("best_measured_fraction", q(0.25)),
+        measured_fraction_q75=("best_measured_fraction", q(0.75)),
+    )
+    return table.reset_index()

@@ -1,0 +1,48 @@
+"""Argument checks shared by every layer: each error names the argument and the allowed values."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+
+
+def check_choice(name: str, value: Any, allowed: Iterable[Any]) -> None:
+    """Raise ValueError unless `value` is one of `allowed`."""
+    allowed = list(allowed)
+    if value not in allowed:
+        raise ValueError(f"{name}: got {value!r}; allowed values: {', '.join(map(repr, allowed))}")
+
+
+def check_real(
+    name: str,
+    value: Any,
+    *,
+    low: float = -np.inf,
+    high: float = np.inf,
+    low_inclusive: bool = True,
+) -> np.ndarray:
+    """Check that `value` (a number or array of numbers) is finite and in [low, high] (or (low, high]).
+
+    Returns it as a float64 NumPy array. Runs on concrete values, before anything is compiled.
+    """
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name}: expected a real number, got {value!r}") from None
+    bracket = "[" if low_inclusive else "("
+    allowed = f"finite numbers in {bracket}{low}, {high}]"
+    if array.size == 0 or not np.all(np.isfinite(array)):
+        raise ValueError(f"{name}: got {value!r}; allowed values: {allowed}")
+    below = array < low if low_inclusive else array <= low
+    if np.any(below) or np.any(array > high):
+        raise ValueError(f"{name}: got {value!r}; allowed values: {allowed}")
+    return array
+
+
+def check_positive_int(name: str, value: Any, minimum: int = 1) -> int:
+    """Check that `value` is an integer >= `minimum` (bools are refused)."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
+        raise ValueError(f"{name}: got {value!r}; allowed values: integers >= {minimum}")
+    return int(value)
