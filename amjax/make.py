@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from gymnax.environments.environment import Environment
 
 from amjax.envs.registry import make_env
-from amjax.validation import check_choice, check_real
+from amjax.validation import check_bool, check_choice, check_real
 from amjax.wrappers.active_measure import MODES, ActiveMeasure, AlwaysMeasured, MeasureParams
 
 
@@ -32,12 +32,13 @@ def make(
       noise_std: standard deviation for mode "noisy" (required there, refused elsewhere).
       vanilla: return the plain environment instead (always measured, cost 0, same info keys).
     """
-    check_choice("vanilla", vanilla, (True, False))
+    check_bool("vanilla", vanilla)
+    check_bool("flag", flag)
     env, env_params = make_env(env_id)
     if vanilla:
         if noise_std is not None or mode != "last" or check_real("cost", cost).any():
             raise ValueError("vanilla=True takes no cost, mode or noise_std: it never hides a state")
-        return AlwaysMeasured(env), env_params
+        return AlwaysMeasured(env, env_params), env_params
     check_choice("mode", mode, MODES)
     cost = check_real("cost", cost, low=0.0)
     if mode == "noisy":

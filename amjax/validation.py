@@ -15,6 +15,13 @@ def check_choice(name: str, value: Any, allowed: Iterable[Any]) -> None:
         raise ValueError(f"{name}: got {value!r}; allowed values: {', '.join(map(repr, allowed))}")
 
 
+def check_bool(name: str, value: Any) -> bool:
+    """Raise ValueError unless `value` is exactly True or False (1, 0 and 1.0 are refused)."""
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"{name}: got {value!r}; allowed values: True, False")
+    return bool(value)
+
+
 def check_real(
     name: str,
     value: Any,

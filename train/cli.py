@@ -28,18 +28,31 @@ def _parse_value(text: str) -> Any:
         return text  # a bare word, e.g. relu
 
 
+def _sequence_fields() -> set[str]:
+    """Config fields whose single value is itself a tuple (network widths)."""
+    return {
+        f.name
+        for algo in ALGORITHMS.values()
+        for f in dataclasses.fields(algo.config_type)
+        if isinstance(f.default, tuple)
+    }
+
+
 def _parse_set(items: Sequence[str]) -> dict[str, Any]:
-    """`name=v1,v2` -> {name: [v1, v2]}; `name=v` -> {name: v}; `hidden=(128,128)` stays one tuple."""
+    """`name=v1,v2` -> {name: [v1, v2]} (swept); `name=v` -> {name: v}. For a tuple-valued field such as
+    `hidden`, `hidden=(128,128)` is one value and `hidden=(64,64),(128,128)` two."""
     hyperparams = {}
+    sequence_fields = _sequence_fields()
     for item in items:
         name, sep, text = item.partition("=")
         if not sep or not name:
             raise ValueError(f"--set: expected NAME=VALUE[,VALUE...], got {item!r}")
         value = _parse_value(text)
-        if isinstance(value, tuple) and value and not isinstance(value[0], int | tuple):
-            value = list(value)  # 1e-3,3e-4 -> a list of values to sweep
-        elif isinstance(value, tuple) and value and isinstance(value[0], tuple):
-            value = list(value)  # (64,64),(256,256) -> two network shapes
+        if name in sequence_fields:
+            if isinstance(value, tuple) and value and all(isinstance(v, tuple) for v in value):
+                value = list(value)
+        elif isinstance(value, tuple):
+            value = list(value)
         hyperparams[name] = value
     return hyperparams
 

@@ -17,7 +17,7 @@ from flax import struct
 
 from amjax.envs.registry import make_env
 from amjax.make import make
-from amjax.validation import check_choice, check_positive_int, check_real
+from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 from amjax.wrappers.active_measure import MODES
 from amjax.wrappers.episode_stats import EpisodeStats
 
@@ -71,8 +71,8 @@ class AgentConfig:
         """Check every field on concrete values (before compiling); returns self."""
         make_env(self.env_id)  # raises on an unknown id, listing the known ones
         check_choice("mode", self.mode, MODES)
-        check_choice("flag", self.flag, (True, False))
-        check_choice("vanilla", self.vanilla, (True, False))
+        check_bool("flag", self.flag)
+        check_bool("vanilla", self.vanilla)
         bounds = {"cost": "nonnegative", "noise_std": "nonnegative", **self.TRACED_BOUNDS}
         for name, kind in bounds.items():
             value = getattr(self, name)

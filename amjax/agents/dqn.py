@@ -1,9 +1,13 @@
 """Dueling Double DQN (Wang et al. 2016; van Hasselt et al. 2016) with a uniform replay buffer in the state.
 
-One `update`: `train_freq` epsilon-greedy steps of `num_envs` envs into the buffer -> (once `learning_starts`
-steps are stored) `gradient_steps` Huber-loss steps on double-Q targets -> a (soft or hard) target-network update
-whenever `target_update_interval` env steps have passed. The defaults are Stable-Baselines3's DQN defaults except
-for the buffer size, warm-up and target interval, which are scaled to CartPole-sized budgets.
+One `update`: `train_freq` epsilon-greedy steps of `num_envs` envs -> n-step transitions into the buffer ->
+(once `learning_starts` steps are stored) `gradient_steps` Huber-loss steps on double-Q targets -> a (soft or
+hard) target-network update whenever `target_update_interval` env steps have passed.
+
+n-step returns (`n_step`, 3 by default as in Tianshou's and Rainbow's DQN) carry the sparse signal of CartPole-like
+tasks, and the measurement cost, back n steps per update. The last n-1 transitions of each env wait in the state
+until their n-step window is complete, so every stored transition is exact; `init` fills that window with n-1
+random steps per env (not counted as training steps). `n_step=1` is ordinary DQN.
 """
 
 from __future__ import annotations
@@ -18,8 +22,9 @@ from flax import struct
 
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import DuelingQNetwork
+from amjax.agents.optim import clipped_adam
 from amjax.agents.replay import ReplayBuffer, replay_add, replay_init, replay_sample
-from amjax.agents.rollout import EnvBatch, reset_envs, rollout
+from amjax.agents.rollout import EnvBatch, Transition, reset_envs, rollout
 from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, greedy_policy, make_train
 from amjax.validation import check_choice, check_positive_int
 
@@ -37,6 +42,8 @@ class DQNConfig(AgentConfig):
     activation: str = static("relu")
     dueling: bool = static(True)
     double_q: bool = static(True)
+    n_step: int = static(3)  # multi-step returns (1 = one-step DQN)
+    anneal_lr: bool = static(True)  # linear decay of the learning rate to 0 over training
     learning_rate: float = 5e-4
     gamma: float = 0.99
     tau: float = 1.0  # target update rate (1 = hard copy)
@@ -61,6 +68,7 @@ class DQNConfig(AgentConfig):
     def validate(self) -> DQNConfig:
         for name in (
             "num_envs", "buffer_size", "batch_size", "train_freq", "gradient_steps", "target_update_interval",
+            "n_step",
         ):
             check_positive_int(name, getattr(self, name))
         check_positive_int("learning_starts", self.learning_starts, minimum=0)
@@ -80,6 +88,7 @@ class DQNState:
     opt_state: Any
     buffer: ReplayBuffer
     envs: EnvBatch
+    pending: dict[str, jax.Array]  # the last n_step - 1 transitions per env, [n_step - 1, num_envs, ...]
     key: jax.Array
     env_steps: jax.Array
 
@@ -90,33 +99,80 @@ def _network(config: DQNConfig, env: Any, env_params: Any) -> DuelingQNetwork:
 
 
 def _optimizer(config: DQNConfig) -> optax.GradientTransformation:
-    return optax.chain(
-        optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate)
+    num_updates = config.total_timesteps // config.steps_per_update()
+    return clipped_adam(
+        config.learning_rate,
+        config.max_grad_norm,
+        total_steps=num_updates * config.gradient_steps,
+        anneal=config.anneal_lr,
     )
 
 
 def _example_item(envs: EnvBatch) -> dict[str, jax.Array]:
+    """The structure of one stored (n-step) transition."""
     obs = envs.obs[0]
+    return {"obs": obs, "action": jnp.int32(0), "reward": jnp.float32(0), "next_obs": obs, "discount": jnp.float32(0)}
+
+
+def _transition_arrays(transitions: Transition) -> dict[str, jax.Array]:
     return {
-        "obs": obs,
-        "action": jnp.int32(0),
-        "reward": jnp.float32(0.0),
-        "next_obs": obs,
-        "terminated": jnp.float32(0.0),
+        "obs": transitions.obs,
+        "action": transitions.action,
+        "reward": transitions.reward,
+        "next_obs": transitions.next_obs,
+        "terminated": transitions.terminated.astype(jnp.float32),
+        "done": transitions.done.astype(jnp.float32),
+    }
+
+
+def n_step_transitions(window: dict[str, jax.Array], n: int, gamma: jax.Array) -> dict[str, jax.Array]:
+    """n-step transitions from a [T + n - 1, num_envs] window of one-step transitions, for its first T steps.
+
+    reward = sum_{k<m} gamma^k r_{t+k}, where m <= n stops after the first episode end; next_obs = the pre-reset
+    observation after step t+m-1; discount = gamma^m (1 - terminated_{t+m-1}) multiplies the bootstrap value.
+    """
+    T = window["reward"].shape[0] - (n - 1)
+    reward = jnp.zeros_like(window["reward"][:T])
+    next_obs = window["next_obs"][:T]
+    discount = jnp.zeros_like(reward)
+    alive = jnp.ones_like(reward)  # no episode end yet inside the window
+    scale = jnp.ones_like(reward)  # gamma^k
+    for k in range(n):  # n is static and small
+        reward = reward + alive * scale * window["reward"][k : k + T]
+        scale = scale * gamma
+        keep = alive[..., None] > 0
+        next_obs = jnp.where(keep, window["next_obs"][k : k + T], next_obs)
+        discount = jnp.where(alive > 0, scale * (1.0 - window["terminated"][k : k + T]), discount)
+        alive = alive * (1.0 - window["done"][k : k + T])
+    return {
+        "obs": window["obs"][:T],
+        "action": window["action"][:T],
+        "reward": reward,
+        "next_obs": next_obs,
+        "discount": discount,
     }
 
 
 def init(config: DQNConfig, key: jax.Array) -> DQNState:
     env, env_params, _ = config.make_env()
-    net_key, env_key, key = jax.random.split(key, 3)
+    net_key, env_key, warmup_key, key = jax.random.split(key, 4)
     envs = reset_envs(env, env_params, env_key, config.num_envs)
-    params = _network(config, env, env_params).init(net_key, envs.obs[:1])
+    network = _network(config, env, env_params)
+    params = network.init(net_key, envs.obs[:1])
+
+    def random_action(batch: EnvBatch, carry: Any, key: jax.Array):
+        return jax.random.randint(key, batch.first.shape, 0, network.num_actions), carry, None
+
+    # The first n-1 transitions of each env, waiting for their n-step windows.
+    envs, _, transitions, _ = rollout(env, env_params, envs, None, random_action, warmup_key, config.n_step - 1)
+    pending = _transition_arrays(transitions)
     return DQNState(
         params=params,
         target_params=params,
         opt_state=_optimizer(config).init(params),
         buffer=replay_init(_example_item(envs), config.buffer_size),
         envs=envs,
+        pending=pending,
         key=key,
         env_steps=jnp.int32(0),
     )
@@ -133,15 +189,16 @@ def td_targets(
     q_next_online: jax.Array,
     q_next_target: jax.Array,
     reward: jax.Array,
-    terminated: jax.Array,
-    gamma: jax.Array,
+    discount: jax.Array,
     double_q: bool = True,
 ) -> jax.Array:
-    """r + gamma (1 - terminated) Q_target(s', a*), a* = argmax Q_online(s') (double) or argmax Q_target."""
+    """reward + discount * Q_target(s', a*), a* = argmax_a Q_online(s', a) (double) or argmax Q_target(s', a).
+
+    For one-step DQN, discount = gamma (1 - terminated); for n-step, see `n_step_transitions`."""
     chooser = q_next_online if double_q else q_next_target
     best = jnp.argmax(chooser, axis=-1)
     bootstrap = jnp.take_along_axis(q_next_target, best[..., None], -1)[..., 0]
-    return reward + gamma * (1.0 - terminated) * bootstrap
+    return reward + discount * bootstrap
 
 
 def update(config: DQNConfig, state: DQNState) -> tuple[DQNState, UpdateStats]:
@@ -160,16 +217,10 @@ def update(config: DQNConfig, state: DQNState) -> tuple[DQNState, UpdateStats]:
         explore = jax.random.uniform(explore_key, greedy_action.shape) < eps
         return jnp.where(explore, random_action, greedy_action), carry, None
 
-    envs, _, transitions, _ = rollout(
-        env, env_params, state.envs, None, act, rollout_key, config.train_freq
-    )
-    items = {
-        "obs": transitions.obs,
-        "action": transitions.action,
-        "reward": transitions.reward,
-        "next_obs": transitions.next_obs,
-        "terminated": transitions.terminated.astype(jnp.float32),
-    }
+    envs, _, transitions, _ = rollout(env, env_params, state.envs, None, act, rollout_key, config.train_freq)
+    window = jax.tree.map(lambda p, x: jnp.concatenate([p, x]), state.pending, _transition_arrays(transitions))
+    items = n_step_transitions(window, config.n_step, config.gamma)  # complete for the first train_freq steps
+    pending = jax.tree.map(lambda x: x[config.train_freq :], window)
     buffer = replay_add(state.buffer, jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), items))
     env_steps = state.env_steps + config.steps_per_update()
 
@@ -181,8 +232,7 @@ def update(config: DQNConfig, state: DQNState) -> tuple[DQNState, UpdateStats]:
             network.apply(params, sample["next_obs"]),
             network.apply(target_params, sample["next_obs"]),
             sample["reward"],
-            sample["terminated"],
-            config.gamma,
+            sample["discount"],
             config.double_q,
         )
         return optax.huber_loss(q_taken, jax.lax.stop_gradient(target)).mean()
@@ -214,7 +264,7 @@ def update(config: DQNConfig, state: DQNState) -> tuple[DQNState, UpdateStats]:
     tau = jnp.where(sync, config.tau, 0.0)
     target_params = optax.incremental_update(params, state.target_params, tau)
 
-    new_state = DQNState(params, target_params, opt_state, buffer, envs, key, env_steps)
+    new_state = DQNState(params, target_params, opt_state, buffer, envs, pending, key, env_steps)
     loss = jnp.where(learning, losses.mean(), 0.0)
     return new_state, UpdateStats(loss, EpisodeSums.of(transitions))
 
@@ -228,4 +278,4 @@ def greedy(config: DQNConfig, state: DQNState):
 DQN = Algorithm("dqn", DQNConfig, init, update, greedy, params=lambda state: state.params)
 train = make_train(DQN)
 
-__all__ = ["DQN", "DQNConfig", "DQNState", "epsilon", "td_targets", "train"]
+__all__ = ["DQN", "DQNConfig", "DQNState", "epsilon", "n_step_transitions", "td_targets", "train"]

@@ -17,6 +17,7 @@ from flax import struct
 
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import ActorCritic
+from amjax.agents.optim import clipped_adam
 from amjax.agents.rollout import EnvBatch, reset_envs, rollout
 from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, greedy_policy, make_train
 from amjax.validation import check_choice, check_positive_int
@@ -32,7 +33,7 @@ class PPOConfig(AgentConfig):
     activation: str = static("tanh")
     shared_network: bool = static(False)  # one torso for actor and critic
     anneal_lr: bool = static(True)  # linear decay of the learning rate to 0 over training
-    learning_rate: float = 2.5e-4
+    learning_rate: float = 1e-3
     gamma: float = 0.99
     gae_lambda: float = 0.95
     clip_eps: float = 0.2
@@ -81,16 +82,12 @@ def _network(config: PPOConfig, env: Any, env_params: Any) -> ActorCritic:
 
 def _optimizer(config: PPOConfig) -> optax.GradientTransformation:
     num_updates = config.total_timesteps // config.steps_per_update()
-    grad_steps = max(num_updates * config.update_epochs * config.num_minibatches, 1)
-
-    def learning_rate(count: jax.Array) -> jax.Array:
-        if not config.anneal_lr:
-            return config.learning_rate
-        return config.learning_rate * (1.0 - jnp.minimum(count, grad_steps) / grad_steps)
-
-    return optax.chain(
-        optax.clip_by_global_norm(config.max_grad_norm),
-        optax.adam(learning_rate, eps=1e-5),
+    return clipped_adam(
+        config.learning_rate,
+        config.max_grad_norm,
+        total_steps=num_updates * config.update_epochs * config.num_minibatches,
+        anneal=config.anneal_lr,
+        eps=1e-5,
     )
 
 

@@ -25,7 +25,8 @@ GRID_FIELDS = ("env_id", "cost", "vanilla")
 class SweepSpec:
     """What to train: every combination of the listed values.
 
-    `hyperparams` maps a config field to the values to sweep (a list) or one value; it applies to every agent
+    `hyperparams` maps a config field to the values to sweep (a list) or one value (anything else, a tuple such as
+    `hidden=(64, 64)` included); it applies to every agent
     whose config has that field. Traced fields (learning rate, gamma, ...) are vmapped within one compiled
     program; static fields (network widths, num_envs, ...) compile one program per value. `vanilla` adds, per env,
     agent and seed, a run on the plain environment (the paper's baseline).
@@ -35,8 +36,8 @@ class SweepSpec:
     agents: tuple[str, ...] = ("dqn", "ppo")
     costs: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3)
     seeds: tuple[int, ...] = tuple(range(3))
-    total_timesteps: int = 100_000
-    eval_every: int = 10_000
+    total_timesteps: int = 102_400
+    eval_every: int = 10_240
     eval_episodes: int = 10
     vanilla: bool = False
     mode: str = "last"
@@ -68,10 +69,11 @@ class RunConfig:
 
 
 def _as_values(name: str, value: Any) -> list[Any]:
-    if isinstance(value, list | tuple) and not (name == "hidden" and value and isinstance(value[0], int)):
+    """A list holds the values to sweep; anything else (a tuple such as hidden=(64, 64) included) is one value."""
+    if isinstance(value, list):
         if not value:
             raise ValueError(f"{name}: an empty list of values")
-        return list(value)
+        return value
     return [value]
 
 

@@ -26,11 +26,11 @@ from gymnax.environments import spaces
 from gymnax.environments.environment import Environment
 from gymnax.wrappers.purerl import GymnaxWrapper
 
-from amjax.validation import check_choice
+from amjax.validation import check_bool, check_choice
 
 MODES = ("last", "random", "noisy")
 # gymnax writes "unbounded" as +-finfo(float32).max (e.g. CartPole's velocities); treat such bounds as infinite.
-_UNBOUNDED = 1e30
+UNBOUNDED = 1e30
 
 
 @struct.dataclass
@@ -58,8 +58,8 @@ def decode_discrete(action: jax.Array, num_controls: int) -> tuple[jax.Array, ja
 
 def sample_box(key: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
     """Sample a Box like Gymnasium's `Box.sample`: uniform where bounded, normal/exponential where not."""
-    low_finite = low > -_UNBOUNDED
-    high_finite = high < _UNBOUNDED
+    low_finite = low > -UNBOUNDED
+    high_finite = high < UNBOUNDED
     key_u, key_n, key_e = jax.random.split(key, 3)
     shape = jnp.broadcast_shapes(low.shape, high.shape)
     safe_low = jnp.where(low_finite, low, 0.0)
@@ -86,10 +86,13 @@ class ActiveMeasure(GymnaxWrapper):
     ):
         super().__init__(env)
         check_choice("mode", mode, MODES)
-        check_choice("flag", flag, (True, False))
+        check_bool("flag", flag)
         self.mode = mode
         self.flag = flag
+        # The inner params behind `default_params` (and so behind reset/step with params=None): the registry's
+        # for an id, e.g. CartPole-v0's 200-step limit, not the inner env class's own defaults.
         env_params = env.default_params if env_params is None else env_params
+        self._env_params = env_params
         self._inner_action_space = env.action_space(env_params)
         if not isinstance(self._inner_action_space, spaces.Discrete | spaces.Box):
             raise TypeError(
@@ -145,8 +148,8 @@ class ActiveMeasure(GymnaxWrapper):
         high = jnp.broadcast_to(jnp.asarray(space.high, jnp.float32), space.shape)
         return low, high
 
-    def observation_space(self, params: MeasureParams) -> spaces.Box:
-        low, high = self._obs_bounds(params)
+    def observation_space(self, params: MeasureParams | None = None) -> spaces.Box:
+        low, high = self._obs_bounds(self.default_params if params is None else params)
         if not self.flag:
             return spaces.Box(low, high, low.shape, jnp.float32)
         return spaces.Box(
@@ -156,7 +159,7 @@ class ActiveMeasure(GymnaxWrapper):
     @property
     def default_params(self) -> MeasureParams:
         return MeasureParams(
-            env_params=self._env.default_params,
+            env_params=self._env_params,
             cost=jnp.float32(0.0),
             noise_std=jnp.float32(0.0),
         )
@@ -236,12 +239,28 @@ class ActiveMeasure(GymnaxWrapper):
 
 
 class AlwaysMeasured(GymnaxWrapper):
-    """The plain environment with the active-measure info keys (cost 0, measured), for vanilla baselines."""
+    """The plain environment with the active-measure info keys (cost 0, measured), for vanilla baselines.
+
+    `env_params` (default: the inner env's own) are its `default_params`, used when reset/step get none.
+    """
+
+    def __init__(self, env: Environment, env_params: Any = None):
+        super().__init__(env)
+        self._env_params = env.default_params if env_params is None else env_params
+
+    @property
+    def default_params(self) -> Any:
+        return self._env_params
+
+    @partial(jax.jit, static_argnames=("self",))
+    def reset(self, key: jax.Array, params: Any = None) -> tuple[jax.Array, Any]:
+        return self._env.reset(key, self.default_params if params is None else params)
 
     @partial(jax.jit, static_argnames=("self",))
     def step(
         self, key: jax.Array, state: Any, action: jax.Array, params: Any = None
     ) -> tuple[jax.Array, Any, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
+        params = self.default_params if params is None else params
         obs, state, reward, terminated, truncated, info = self._env.step(key, state, action, params)
         reward = jnp.asarray(reward, jnp.float32)
         info = {**info, "raw_reward": reward, "cost": jnp.float32(0.0), "measured": jnp.bool_(True)}

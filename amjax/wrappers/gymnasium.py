@@ -1,0 +1,436 @@
+"""Gymnasium bridges: active measurement for any Gymnasium env, and amjax envs as Gymnasium envs.
+
+- `ActiveMeasureWrapper`: the active-measure MDP of `amjax.wrappers.active_measure.ActiveMeasure`,
+  in NumPy, around any `gymnasium.Env` with a Discrete or 1-D Box action space and a Box observation
+  space (for systems not written in JAX, e.g. a lab instrument behind a Gymnasium interface).
+- `to_gymnasium` / `GymnasiumEnv`: a gymnax-API environment and its params (e.g. from `amjax.make`)
+  as a `gymnasium.Env` that passes `gymnasium.utils.env_checker.check_env`, for Stable-Baselines3,
+  Tianshou and the like.
+
+Gymnasium is an optional extra (`pip install amjax[gymnasium]`): of amjax's own modules only this one
+imports it when imported (gymnax 1.0.1 itself still requires it: gymnax/environments/spaces.py).
+"""
+
+from __future__ import annotations
+
+import re
+from functools import partial
+from typing import Any, ClassVar
+
+import gymnasium
+import jax
+import jax.numpy as jnp
+import numpy as np
+from gymnasium import spaces as gym_spaces
+from gymnasium.envs.registration import EnvSpec
+from gymnax.environments import spaces as gymnax_spaces
+
+from amjax.validation import check_bool, check_choice, check_positive_int, check_real
+from amjax.wrappers.active_measure import MODES, UNBOUNDED
+
+__all__ = ["ActiveMeasureWrapper", "GymnasiumEnv", "gymnasium_space", "to_gymnasium"]
+
+# Spawn key that separates the wrapper's view stream from the inner env's `np_random` (same seed).
+_VIEW_STREAM = 0x616D
+
+
+# -- argument and action checks -------------------------------------------------------------------
+
+
+def check_measure_args(cost: Any, mode: str, flag: bool, noise_std: Any) -> tuple[float, float]:
+    """Validate the active-measure arguments as `amjax.make` does; returns (cost, noise_std)."""
+    check_choice("mode", mode, MODES)
+    check_bool("flag", flag)
+    cost_array = check_real("cost", cost, low=0.0)
+    if cost_array.ndim != 0:
+        raise ValueError(f"cost: got {cost!r}; allowed values: one finite number >= 0 (one environment)")
+    if mode == "noisy":
+        if noise_std is None:
+            raise ValueError("noise_std: mode='noisy' needs noise_std, a finite number >= 0")
+        std_array = check_real("noise_std", noise_std, low=0.0)
+        if std_array.ndim != 0:
+            raise ValueError(f"noise_std: got {noise_std!r}; allowed values: one finite number >= 0")
+        return float(cost_array), float(std_array)
+    if noise_std is not None:
+        raise ValueError(f"noise_std is only used with mode='noisy' (mode is {mode!r})")
+    return float(cost_array), 0.0
+
+
+def check_action(space: gym_spaces.Space, action: Any) -> Any:
+    """`action` as a value of `space` (int for Discrete), or ValueError naming what is allowed."""
+    if isinstance(space, gym_spaces.Discrete):
+        start, stop = int(space.start), int(space.start + space.n)
+        allowed = f"integers in [{start}, {stop})"
+        array = np.asarray(action) if not isinstance(action, bool) else np.asarray(action, object)
+        if array.dtype.kind not in "iu" or array.size != 1 or array.ndim > 1:
+            raise ValueError(f"action: got {action!r}; allowed values: {allowed}")
+        value = int(array.reshape(()))
+        if not start <= value < stop:
+            raise ValueError(f"action: got {action!r}; allowed values: {allowed}")
+        return value
+    if isinstance(space, gym_spaces.Box):
+        allowed = f"arrays of shape {space.shape} with entries in [{space.low.tolist()}, {space.high.tolist()}]"
+        try:
+            array = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"action: got {action!r}; allowed values: {allowed}") from None
+        if array.shape != space.shape or not np.all(np.isfinite(array)):
+            raise ValueError(f"action: got {action!r}; allowed values: {allowed}")
+        array = array.astype(space.dtype)
+        if np.any(array < space.low) or np.any(array > space.high):
+            raise ValueError(f"action: got {action!r}; allowed values: {allowed}")
+        return array
+    raise TypeError(f"action space {space} is not supported; allowed: Discrete, Box")
+
+
+def sample_box(rng: np.random.Generator, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """NumPy twin of `active_measure.sample_box`, like Gymnasium's `Box.sample` (spaces/box.py).
+
+    Uniform where bounded, shifted exponential where half-bounded, normal where unbounded; a bound
+    of magnitude >= 1e30 (gymnax writes "unbounded" as +-finfo(float32).max) counts as infinite.
+    """
+    low = np.asarray(low, np.float64)
+    high = np.asarray(high, np.float64)
+    low_finite = low > -UNBOUNDED
+    high_finite = high < UNBOUNDED
+    safe_low = np.where(low_finite, low, 0.0)
+    safe_high = np.where(high_finite, high, 1.0)
+    uniform = safe_low + (safe_high - safe_low) * rng.uniform(size=low.shape)
+    normal = rng.standard_normal(size=low.shape)
+    exponential = rng.exponential(size=low.shape)
+    return np.select(
+        [low_finite & high_finite, low_finite, high_finite],
+        [uniform, safe_low + exponential, safe_high - exponential],
+        normal,
+    )
+
+
+# -- 1. the active-measure wrapper for any Gymnasium env ------------------------------------------
+
+
+class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
+    """Active measurement for a Gymnasium env, with the semantics of the JAX `ActiveMeasure`.
+
+    Every action also chooses whether to measure. Discrete(n) becomes Discrete(2n) with
+    `action = control + n * measure` (offset by the space's `start`); a 1-D Box(d) becomes
+    Box(1 + d) whose first entry, in [0, 1], measures iff it is >= 0.5. A measured step shows the
+    true observation and remembers it; an unmeasured one shows, by `mode`, the remembered
+    observation ("last"), a sample of the observation space ("random", see `sample_box`) or the
+    true observation + N(0, noise_std^2) clipped to the space's bounds ("noisy"). `reset` is a free
+    measurement. With `flag=True` a 1 (fresh) / 0 (stale) is appended. Observations are float32.
+    The reward is `raw_reward - cost * measured`; `info` gains `raw_reward`, `cost` (charged this
+    step) and `measured`. "random" and "noisy" draw from a generator seeded by `reset(seed=...)`
+    (else by the env's `np_random_seed`) in a stream apart from the env's own `np_random`, so
+    wrapping does not change the env's randomness.
+
+    Args:
+      env: a Gymnasium env with a Discrete or 1-D Box action space and a Box observation space
+        (1-D if `flag`).
+      cost: charged per measurement (one finite number >= 0).
+      mode: "last", "random" or "noisy".
+      flag: append the measured flag to the observation.
+      noise_std: standard deviation for mode "noisy" (required there, refused elsewhere).
+    """
+
+    def __init__(
+        self,
+        env: gymnasium.Env,
+        cost: Any = 0.0,
+        mode: str = "last",
+        flag: bool = True,
+        noise_std: Any = None,
+    ):
+        super().__init__(env)
+        self.cost, self.noise_std = check_measure_args(cost, mode, flag, noise_std)
+        self.mode = mode
+        self.flag = bool(flag)
+        inner_action = env.action_space
+        inner_obs = env.observation_space
+        if isinstance(inner_action, gym_spaces.Discrete):
+            self._num_controls = int(inner_action.n)
+            self._start = int(inner_action.start)
+            self.action_space = gym_spaces.Discrete(2 * inner_action.n, start=inner_action.start)
+        elif isinstance(inner_action, gym_spaces.Box):
+            if len(inner_action.shape) != 1 or inner_action.dtype.kind != "f":
+                raise TypeError(
+                    f"env: a Box action space must be 1-D and floating to gain a measure "
+                    f"dimension, got {inner_action}; allowed: Discrete, 1-D floating Box"
+                )
+            dtype = inner_action.dtype
+            self.action_space = gym_spaces.Box(
+                np.concatenate([np.zeros(1, dtype), inner_action.low]),
+                np.concatenate([np.ones(1, dtype), inner_action.high]),
+                dtype=dtype,
+            )
+        else:
+            raise TypeError(
+                f"env: the active-measure wrapper needs a Discrete or Box action space, got "
+                f"{type(inner_action).__name__}; allowed: Discrete, Box"
+            )
+        self._inner_action_space = inner_action
+        if not isinstance(inner_obs, gym_spaces.Box):
+            raise TypeError(
+                f"env: the active-measure wrapper needs a Box observation space, got "
+                f"{type(inner_obs).__name__}; allowed: Box"
+            )
+        if self.flag and len(inner_obs.shape) != 1:
+            raise TypeError(
+                f"flag=True appends to a 1-D observation, but its shape is {inner_obs.shape}; "
+                "use flag=False or flatten the observation"
+            )
+        with np.errstate(over="ignore"):  # float64 bounds beyond float32's range become +-inf
+            self._low = inner_obs.low.astype(np.float32)
+            self._high = inner_obs.high.astype(np.float32)
+        low, high = self._low, self._high
+        if self.flag:
+            low, high = np.append(low, np.float32(0.0)), np.append(high, np.float32(1.0))
+        self.observation_space = gym_spaces.Box(low, high, dtype=np.float32)
+        self._last_obs: np.ndarray | None = None
+        self._view_rng: np.random.Generator | None = None
+
+    def split_action(self, action: Any) -> tuple[Any, bool]:
+        """(control for the inner env, measure flag) of a wrapped action; ValueError if invalid."""
+        action = check_action(self.action_space, action)
+        if isinstance(self._inner_action_space, gym_spaces.Discrete):
+            offset = action - self._start
+            measured = offset >= self._num_controls
+            return self._start + offset - self._num_controls * measured, bool(measured)
+        return action[1:], bool(action[0] >= 0.5)
+
+    def _with_flag(self, obs: np.ndarray, fresh: bool) -> np.ndarray:
+        # A copy either way: a caller mutating the observation must not touch the memory.
+        return np.append(obs, np.float32(fresh)) if self.flag else obs.copy()
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset the env; the first observation is a free measurement (flag 1) and is remembered."""
+        obs, info = self.env.reset(seed=seed, options=options)
+        if seed is not None or self._view_rng is None:
+            entropy = seed if seed is not None else self.env.np_random_seed
+            self._view_rng = (
+                np.random.default_rng(np.random.SeedSequence(entropy, spawn_key=(_VIEW_STREAM,)))
+                if entropy >= 0  # -1: the env's generator was set by hand, its seed is unknown
+                else np.random.default_rng()
+            )
+        self._last_obs = np.array(obs, np.float32)  # a copy: envs may reuse their buffers
+        return self._with_flag(self._last_obs, True), info
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Step with a wrapped action; see the class docstring for what is seen and charged."""
+        if self._last_obs is None or self._view_rng is None:
+            raise RuntimeError("step: call reset() before the first step")
+        control, measured = self.split_action(action)
+        obs, raw_reward, terminated, truncated, info = self.env.step(control)
+        true_obs = np.array(obs, np.float32)  # a copy: envs may reuse their buffers
+        if measured:
+            seen = self._last_obs = true_obs
+        elif self.mode == "last":
+            seen = self._last_obs
+        elif self.mode == "random":
+            seen = sample_box(self._view_rng, self._low, self._high).astype(np.float32)
+        else:
+            noise = self.noise_std * self._view_rng.standard_normal(true_obs.shape)
+            seen = np.clip(true_obs + noise, self._low, self._high).astype(np.float32)
+        raw_reward = float(raw_reward)
+        cost = self.cost if measured else 0.0
+        info = {**info, "raw_reward": raw_reward, "cost": cost, "measured": measured}
+        return self._with_flag(seen, measured), raw_reward - cost, terminated, truncated, info
+
+
+# -- 2. amjax / gymnax environments as Gymnasium environments -------------------------------------
+
+
+def gymnasium_space(space: gymnax_spaces.Space) -> gym_spaces.Space:
+    """Convert a gymnax Discrete or Box space to Gymnasium's.
+
+    gymnax's own `gymnax_space_to_gym_space` tests `low.size` when converting `high` (a scalar low
+    with an array high fails); this broadcasts both bounds to the shape in the space's dtype, so
+    Gymnasium does not warn about lowered precision. gymnax's +-finfo(float32).max "unbounded"
+    bounds are kept: they are finite, so `check_env`'s "Box ... is infinity" warnings do not fire.
+    """
+    if isinstance(space, gymnax_spaces.Discrete):
+        return gym_spaces.Discrete(int(space.n))
+    if isinstance(space, gymnax_spaces.Box):
+        dtype = np.dtype(space.dtype)
+        shape = tuple(space.shape)
+        low = np.broadcast_to(np.asarray(space.low, dtype), shape).copy()
+        high = np.broadcast_to(np.asarray(space.high, dtype), shape).copy()
+        return gym_spaces.Box(low, high, shape, dtype)
+    raise TypeError(f"space: cannot convert {type(space).__name__}; allowed: gymnax Discrete, Box")
+
+
+def _obs_to_numpy(obs: Any, space: gym_spaces.Space) -> Any:
+    if isinstance(space, gym_spaces.Discrete):
+        return np.int64(obs)
+    return np.array(obs, space.dtype)  # a writable copy: arrays from `jax.device_get` are read-only
+
+
+def _packed_keys(info: dict[Any, Any]) -> list[Any]:
+    """Info keys whose values (0-d bool or <= 32-bit float) travel exactly in one float32 vector."""
+    return [
+        name
+        for name, value in info.items()
+        if jnp.ndim(value) == 0
+        and (value.dtype == jnp.bool_ or jnp.issubdtype(value.dtype, jnp.floating))
+        and jnp.dtype(value.dtype).itemsize <= 4
+    ]
+
+
+# Module-level jitted functions keyed (statically) on the environment object: every `GymnasiumEnv`
+# built on one env object (e.g. the copies in a vectorised env) shares one compiled reset and step.
+@partial(jax.jit, static_argnums=0)
+def _reset(env: Any, seed: jax.Array, params: Any) -> tuple[Any, Any, jax.Array]:
+    key_reset, key_next = jax.random.split(jax.random.key(seed))
+    obs, state = env.reset(key_reset, params)
+    return obs, state, key_next
+
+
+def _raw_step(
+    env: Any, key: jax.Array, state: Any, action: jax.Array, params: Any
+) -> tuple[Any, Any, jax.Array, jax.Array, jax.Array, jax.Array, dict[Any, Any]]:
+    key, key_step = jax.random.split(key)
+    obs, state, reward, terminated, truncated, info = env.step(key_step, state, action, params)
+    info = {name: jnp.asarray(value) for name, value in info.items()}
+    final = info.pop("final_observation", None)
+    if final is None or jnp.shape(final) != jnp.shape(obs):
+        raise TypeError(
+            "env: its step must report the pre-reset observation as info['final_observation'], "
+            "shaped like the observation (the gymnax 1.0 API)"
+        )
+    # gymnax auto-resets inside `step`; Gymnasium shows the episode's last observation instead.
+    obs = jnp.where(jnp.logical_or(terminated, truncated), final, obs)
+    return obs, state, key, reward, terminated, truncated, info
+
+
+@partial(jax.jit, static_argnums=0)
+def _step(
+    env: Any, key: jax.Array, state: Any, action: jax.Array, params: Any
+) -> tuple[Any, Any, jax.Array, jax.Array, dict[Any, Any]]:
+    """`_raw_step` with reward, terminated, truncated and the scalar info values packed in one
+    float32 vector: one device-to-host copy instead of ten (about 0.2 ms a step saved on CPU)."""
+    obs, state, key, reward, terminated, truncated, info = _raw_step(env, key, state, action, params)
+    packed_keys = _packed_keys(info)
+    scalars = [reward, terminated, truncated, *(info[name] for name in packed_keys)]
+    packed = jnp.stack([jnp.asarray(value, jnp.float32) for value in scalars])
+    rest = {name: value for name, value in info.items() if name not in packed_keys}
+    return obs, state, key, packed, rest
+
+
+class GymnasiumEnv(gymnasium.Env[Any, Any]):
+    """A gymnax-API environment (plain, `ActiveMeasure` or `AlwaysMeasured`) as a `gymnasium.Env`.
+
+    Seeding: `reset(seed=...)` seeds `np_random`; each reset draws a 32-bit JAX seed from it, splits
+    it into the reset key and a key carried (and split once per step) through the episode.
+
+    Stepping: the environment's own `step` (not `step_env`: a gymnax wrapper such as `ActiveMeasure`
+    overrides `step` only, and `step_env` would reach the inner env). gymnax auto-resets inside
+    `step`, so on a terminated/truncated step the observation returned is
+    `info['final_observation']` (for `ActiveMeasure` the view of the last step, flag included), the
+    auto-reset state is discarded, and `step` raises RuntimeError until `reset` is called: a
+    Gymnasium env does not auto-reset.
+
+    Outputs: NumPy observations in the space's dtype, float rewards, bool `terminated`/`truncated`,
+    `info` values as Python scalars or arrays (without `final_observation`, which is the
+    observation). Actions outside the action space raise ValueError. `params` stay traced: a new
+    cost is not a new compile, and every instance on the same env object shares the compiled reset
+    and step.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
+
+    def __init__(
+        self,
+        env: Any,
+        params: Any,
+        *,
+        seed: int | None = None,
+        render_mode: str | None = None,
+    ):
+        if render_mode is not None:
+            raise ValueError(f"render_mode: got {render_mode!r}; allowed values: None (no rendering)")
+        for method in ("reset", "step", "action_space", "observation_space"):
+            if not callable(getattr(env, method, None)):
+                raise TypeError(
+                    f"env: expected a gymnax-API environment (reset, step, action_space, "
+                    f"observation_space), got {type(env).__name__} without {method!r}"
+                )
+        self.gymnax_env = env
+        # Required: an amjax env's `default_params` have cost 0, not the cost `amjax.make` was given.
+        # On the device once: Python numbers among the leaves would be copied over at every step.
+        self.params = jax.device_put(params)
+        self.action_space = gymnasium_space(env.action_space(self.params))
+        self.observation_space = gymnasium_space(env.observation_space(self.params))
+        if not isinstance(self.action_space, gym_spaces.Discrete | gym_spaces.Box):
+            raise TypeError(f"env: action space {self.action_space}; allowed: Discrete, Box")
+        self._check_shapes()
+        name = re.sub(r"[^\w.-]+", "-", str(getattr(env, "name", type(env).__name__))).strip("-")
+        self.spec = EnvSpec(
+            id=f"amjax/{name or 'env'}",
+            entry_point=partial(GymnasiumEnv, env, params),
+            nondeterministic=False,
+        )
+        if seed is not None:
+            super().reset(seed=check_positive_int("seed", seed, minimum=0))
+        self._state: Any = None
+        self._key: jax.Array | None = None
+
+    def _check_shapes(self) -> None:
+        """Trace reset and step (no compile) to refuse batched params, e.g. `make(cost=[...])`."""
+        env = self.gymnax_env
+        obs, state, key = jax.eval_shape(partial(_reset, env), np.uint32(0), self.params)
+        action = jax.ShapeDtypeStruct(self.action_space.shape, self._jax_action(0).dtype)
+        out = jax.eval_shape(partial(_raw_step, env), key, state, action, self.params)
+        step_obs, reward, terminated, truncated, info = out[0], *out[3:]
+        obs_shape = self.observation_space.shape
+        shapes = (obs.shape, step_obs.shape, reward.shape, terminated.shape, truncated.shape)
+        if shapes != (obs_shape, obs_shape, (), (), ()):
+            raise ValueError(
+                f"params: one environment's params expected (observation shape {obs_shape}, "
+                f"scalar reward and done flags), got observation shape {step_obs.shape} and "
+                f"reward shape {reward.shape}: were they built for a batch (e.g. an array cost)?"
+            )
+        # How `_step` packs info (the same rule at trace time): key -> Python type to restore.
+        self._packed_info = {name: bool if info[name].dtype == jnp.bool_ else float for name in _packed_keys(info)}
+
+    def _jax_action(self, action: Any) -> np.ndarray:
+        if isinstance(self.action_space, gym_spaces.Discrete):
+            return np.asarray(action, np.int32)
+        return np.asarray(action, self.action_space.dtype)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+        """Start an episode; `options` must be None or empty (amjax envs take no reset options)."""
+        if options:
+            raise ValueError(f"options: got {options!r}; allowed values: None or {{}}")
+        if seed is not None:
+            check_positive_int("seed", seed, minimum=0)
+        super().reset(seed=seed)
+        jax_seed = self.np_random.integers(0, 2**32, dtype=np.uint32)
+        obs, self._state, self._key = _reset(self.gymnax_env, jax_seed, self.params)
+        return _obs_to_numpy(jax.device_get(obs), self.observation_space), {}
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """One transition; after a terminated or truncated step, `reset` must come next."""
+        if self._state is None:
+            raise RuntimeError(
+                "step: no episode is running (call reset() first, and again after an episode terminated or truncated)"
+            )
+        action = self._jax_action(check_action(self.action_space, action))
+        obs, state, key, packed, rest = _step(self.gymnax_env, self._key, self._state, action, self.params)
+        obs, packed, rest = jax.device_get((obs, packed, rest))
+        packed = packed.tolist()
+        terminated, truncated = bool(packed[1]), bool(packed[2])
+        info = {name: kind(value) for (name, kind), value in zip(self._packed_info.items(), packed[3:], strict=True)}
+        for name, value in rest.items():
+            info[name] = value.item() if np.ndim(value) == 0 else np.asarray(value)
+        self._state, self._key = (None, None) if terminated or truncated else (state, key)
+        return _obs_to_numpy(obs, self.observation_space), packed[0], terminated, truncated, info
+
+
+def to_gymnasium(env: Any, params: Any, *, seed: int | None = None) -> GymnasiumEnv:
+    """A gymnax-API environment and its params as a `gymnasium.Env` (see `GymnasiumEnv`).
+
+    For example `to_gymnasium(*amjax.make("CartPole-v0", cost=0.2), seed=0)`; `seed` seeds
+    `np_random` for the resets that do not pass one.
+    """
+    return GymnasiumEnv(env, params, seed=seed)

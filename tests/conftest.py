@@ -1,0 +1,77 @@
+"""Shared test helpers.
+
+`rollout` runs reset + a scanned sequence of steps of any gymnax-API environment in one jitted program. The
+environment is a static argument, so each (env object, sequence length) compiles once and hypothesis examples
+that reuse a module-level env reuse the compiled program. `scan_steps` is the same program unjitted, for tests
+that vmap it themselves.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import pytest
+
+
+class Rollout(NamedTuple):
+    """A reset followed by T steps (NumPy arrays, leading axis T for the step outputs)."""
+
+    obs0: Any  # observation after reset
+    state0: Any  # state after reset
+    step_keys: Any  # the key passed to `step` at each time step
+    obs: Any  # observation returned by step t (after any auto-reset)
+    state: Any  # state after step t
+    reward: Any
+    terminated: Any
+    truncated: Any
+    info: dict[str, Any]
+
+
+def scan_steps(env, params, reset_key, step_keys, actions):
+    """Traceable (vmap/jit it): reset, then `lax.scan` the steps; returns (obs0, state0, step outputs)."""
+    obs0, state0 = env.reset(reset_key, params)
+
+    def step(state, xs):
+        key, action = xs
+        obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
+        return state, (obs, state, reward, terminated, truncated, info)
+
+    _, outputs = jax.lax.scan(step, state0, (step_keys, actions))
+    return obs0, state0, outputs
+
+
+_rollout = jax.jit(scan_steps, static_argnums=0)
+
+
+def run_rollout(env, params, key, actions, step_keys=None) -> Rollout:
+    """Reset with `split(key)[0]`, then step with `step_keys` (default: T keys split from `split(key)[1]`)."""
+    reset_key, keys_key = jax.random.split(key)
+    if step_keys is None:
+        step_keys = jax.random.split(keys_key, len(actions))
+    obs0, state0, outputs = _rollout(env, params, reset_key, step_keys, actions)
+    obs0, state0, outputs = jax.device_get((obs0, state0, outputs))
+    return Rollout(obs0, state0, step_keys, *outputs)
+
+
+@pytest.fixture(scope="session")
+def rollout():
+    """`rollout(env, params, key, actions, step_keys=None) -> Rollout` (see `run_rollout`)."""
+    return run_rollout
+
+
+@pytest.fixture(scope="session")
+def scan_steps_fn():
+    """`scan_steps(env, params, reset_key, step_keys, actions)`: traceable, returns (obs0, state0, outputs)."""
+    return scan_steps
+
+
+@jax.jit
+def _inner_keys(step_keys):
+    return jax.vmap(lambda key: jax.random.split(key)[0])(step_keys)
+
+
+@pytest.fixture(scope="session")
+def inner_keys():
+    """The keys `ActiveMeasure.step` passes to its inner env for each of `step_keys`: `split(key)[0]`."""
+    return _inner_keys
