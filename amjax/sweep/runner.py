@@ -8,6 +8,8 @@ last checkpoint (training is deterministic), and rows are keyed by (config_id, e
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import json
 import math
 import time
@@ -74,7 +76,10 @@ def _batches(runs: Sequence[RunConfig], max_batch: int) -> list[_Batch]:
     return batches
 
 
+@functools.cache
 def _compiled(algo: Algorithm, chunk_evals: int) -> tuple[Callable, Callable]:
+    """Jitted init and chunk functions of an algorithm; cached so reruns in one process reuse the compiled
+    programs (jax caches one per shape and static config)."""
     # Initialisation runs configuration by configuration (lax.map), not vmapped: cheap, and it keeps batched
     # linear algebra out of network initialisation (the jaxlib CPU deadlock in the research notes).
     init = jax.jit(lambda configs, keys: jax.lax.map(lambda ck: init_run(algo, *ck), (configs, keys)))
@@ -102,6 +107,14 @@ def _rows(batch: _Batch, rows: EvalRow, hyper_columns: list[str]) -> pd.DataFram
     table = pd.DataFrame(frame)
     table["eval_measured_fraction"] = table.eval_measurements / table.eval_length
     return table
+
+
+def _group_configs(runs: Sequence[RunConfig]) -> list[dict[str, Any]]:
+    """Every field of one configuration per compiled group (traced fields as in its first configuration)."""
+    return [
+        {"agent": group[0].agent, **dataclasses.asdict(group[0].config)}
+        for group in group_runs(runs)
+    ]
 
 
 def _cell(value: Any) -> Any:
@@ -139,30 +152,32 @@ def run_sweep(
                 f"out: {out} holds a different sweep (see its metadata.json); choose another folder"
             )
     else:
-        storage.write_json(meta_path, {"spec": spec.to_json(), **storage.environment_info()})
+        storage.write_json(
+            meta_path,
+            {"spec": spec.to_json(), "agent_configs": _group_configs(runs), **storage.environment_info()},
+        )
 
     hyper_columns = sorted({k for r in runs for k in r.hyperparams})
     results = storage.read_table(out / "results")
     batches = _batches(runs, max_batch)
     total_steps = len(runs) * spec.total_timesteps
     bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
-    compiled: dict[tuple[str, Any], tuple[Callable, Callable]] = {}
     for batch in batches:
         config0 = batch.runs[0].config
         num_evals = config0.num_evals
         chunk_evals = _chunk_evals(num_evals, target_chunks)
         ckpt_path = out / "checkpoints" / f"{batch.name}.msgpack"
-        cache_key = (config0.static_key(), batch.size)
-        if cache_key not in compiled:
-            compiled[cache_key] = _compiled(batch.algo, chunk_evals)
-        init, chunk = compiled[cache_key]
+        init, chunk = _compiled(batch.algo, chunk_evals)
         configs, keys = batch.stacked()
         states = init(configs, keys)
         evals_done = 0
         if ckpt_path.exists():
             states, evals_done = storage.load_checkpoint(ckpt_path, states)
+        # Plain (strongly typed) arrays, fresh or restored alike, so both hit one compiled chunk program.
+        states = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), states)
         bar.update(len(batch.runs) * evals_done * config0.eval_every)
-        bar.set_description(f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs)")
+        label = f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs)"
+        bar.set_description(f"{label}, compiling" if evals_done < num_evals else label)
         last_checkpoint = time.monotonic()
         while evals_done < num_evals:
             start = time.monotonic()
@@ -179,6 +194,7 @@ def run_sweep(
             bar.set_postfix(
                 {"steps/s": f"{steps / (time.monotonic() - start):.3g}", "median best": f"{best:.1f}"}
             )
+            bar.set_description(label)
             bar.update(steps)
             if on_chunk is not None:
                 on_chunk(results)

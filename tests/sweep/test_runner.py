@@ -1,0 +1,188 @@
+"""The sweep runner and CLI: resume after a kill, no duplicate rows, atomic files, summaries, bad flags."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from amjax.sweep import SweepMismatchError, SweepSpec, expand, group_runs, run_sweep
+from amjax.sweep.storage import load_checkpoint, save_checkpoint, seed_table, summarize
+from train.cli import main
+
+TINY = SweepSpec(
+    envs=("CartPole-v0",),
+    agents=("ppo",),
+    costs=(0.0, 0.3),
+    seeds=(0, 1),
+    total_timesteps=4096,
+    eval_every=1024,
+    eval_episodes=2,
+    hyperparams={"num_envs": 4, "num_steps": 32, "learning_rate": [1e-3, 3e-4]},
+)
+VALUE_COLUMNS = ["eval_return", "eval_raw_return", "eval_measurements", "train_return", "loss"]
+
+
+class Interrupt(Exception):
+    pass
+
+
+def _interrupt_after(chunks: int):
+    seen = []
+
+    def on_chunk(results):
+        seen.append(len(results))
+        if len(seen) == chunks:
+            raise Interrupt
+
+    return on_chunk
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("full")
+    return run_sweep(TINY, out, progress=False, target_chunks=4)
+
+
+def test_grid_groups_and_ids():
+    runs = expand(TINY)
+    assert len(runs) == 2 * 2 * 2  # costs x seeds x learning rates
+    assert len({r.config_id for r in runs}) == len(runs)
+    assert len(group_runs(runs)) == 1  # traced fields only: one compiled program
+    assert [r.config_id for r in expand(TINY)] == [r.config_id for r in runs]  # stable across calls
+    widths = SweepSpec(**{**TINY.__dict__, "hyperparams": {"hidden": [(32,), (16, 16)]}})
+    assert len(group_runs(expand(widths))) == 2  # a static field compiles separately
+
+
+def test_full_run_tables(full_run):
+    results, summary = full_run.results, full_run.summary
+    assert len(results) == 8 * 4 and not results.duplicated(["config_id", "env_steps"]).any()
+    assert sorted(results.env_steps.unique()) == [1024, 2048, 3072, 4096]
+    assert set(results.columns) >= {"env", "agent", "cost", "seed", "learning_rate", "eval_measured_fraction"}
+    for stem in ("results", "summary", "seed_summary"):
+        assert (full_run.out / f"{stem}.parquet").exists() and (full_run.out / f"{stem}.csv").exists()
+    meta = (full_run.out / "metadata.json").read_text()
+    assert '"jax"' in meta and '"spec"' in meta
+    # Summary: best = max over evaluations, per configuration, recomputed by hand.
+    for config_id, rows in results.groupby("config_id"):
+        row = summary.set_index("config_id").loc[config_id]
+        assert row.best_return == pytest.approx(rows.eval_return.max())
+        at_best = rows.loc[rows.eval_return.idxmax()]
+        assert row.best_measured_fraction == pytest.approx(at_best.eval_measurements / at_best.eval_length)
+    assert len(full_run.table) == 4 and (full_run.table.seeds == 2).all()
+
+
+@pytest.mark.parametrize("checkpoint_every_s", [0.0, 1e9])
+def test_resume_after_interrupt(tmp_path, full_run, checkpoint_every_s):
+    """Interrupted after 2 of 4 chunks (with a checkpoint, or with results written past the last checkpoint),
+    the rerun finishes with exactly the rows of an uninterrupted run."""
+    with pytest.raises(Interrupt):
+        run_sweep(TINY, tmp_path, progress=False, target_chunks=4, checkpoint_every_s=checkpoint_every_s,
+                  on_chunk=_interrupt_after(2))
+    partial = pd.read_parquet(tmp_path / "results.parquet")
+    assert len(partial) == 8 * 2
+    resumed = run_sweep(TINY, tmp_path, progress=False, target_chunks=4, checkpoint_every_s=checkpoint_every_s)
+    assert not resumed.results.duplicated(["config_id", "env_steps"]).any()
+    a = resumed.results.sort_values(["config_id", "env_steps"]).reset_index(drop=True)
+    b = full_run.results.sort_values(["config_id", "env_steps"]).reset_index(drop=True)
+    pd.testing.assert_frame_equal(a[["config_id", "env_steps"]], b[["config_id", "env_steps"]])
+    np.testing.assert_allclose(a[VALUE_COLUMNS].to_numpy(float), b[VALUE_COLUMNS].to_numpy(float), rtol=1e-5)
+
+
+def test_sigkill_then_rerun_resumes(tmp_path):
+    """A real SIGKILL of the command-line process at an arbitrary point; the same command then completes."""
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "train", "sweep", "--env", "CartPole-v0", "--agent", "ppo", "--cost", "0.1",
+               "--seeds", "2", "--steps", "8192", "--eval-every", "1024", "--eval-episodes", "2",
+               "--set", "num_envs=4", "--set", "num_steps=32", "--out", str(out), "--no-progress"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}
+    process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 240
+    while not (out / "results.parquet").exists() and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    finished = subprocess.run(command, env=env, capture_output=True, text=True, timeout=400)
+    assert finished.returncode == 0, finished.stderr
+    results = pd.read_parquet(out / "results.parquet")
+    assert len(results) == 2 * 8 and not results.duplicated(["config_id", "env_steps"]).any()
+    assert "best costed reward" in finished.stdout
+    assert not list(out.rglob(".*.parquet.*"))  # no temporary files left behind
+
+
+def test_folder_with_another_sweep_is_refused(tmp_path, full_run, capsys):
+    other = SweepSpec(**{**TINY.__dict__, "costs": (0.2,)})
+    before = {p: p.stat().st_mtime_ns for p in full_run.out.rglob("*")}
+    with pytest.raises(SweepMismatchError, match="different sweep"):
+        run_sweep(other, full_run.out, progress=False)
+    code = main(["sweep", "--agent", "ppo", "--cost", "0.5", "--seeds", "1", "--steps", "4096",
+                 "--eval-every", "1024", "--out", str(full_run.out), "--no-progress"])
+    assert code == 2 and "different sweep" in capsys.readouterr().err
+    assert {p: p.stat().st_mtime_ns for p in full_run.out.rglob("*")} == before  # nothing rewritten
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--env", "NoSuchEnv-v9"], "unknown environment"),
+        (["--agent", "sac"], "unknown agent"),
+        (["--cost", "-0.1"], "cost"),
+        (["--cost", "nan"], "cost"),
+        (["--seeds", "0"], "--seeds"),
+        (["--set", "total_timesteps=1000,2000"], "total_timesteps"),
+        (["--set", "learning_rate=-1"], "learning_rate"),
+        (["--set", "no_such_field=3"], "no_such_field"),
+        (["--steps", "1000", "--eval-every", "300"], "eval_every"),
+        (["--max-batch", "0"], "max-batch"),
+    ],
+)
+def test_bad_flags_exit_2_without_output(tmp_path, capsys, flags, message):
+    out = tmp_path / "never"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["sweep", "--agent", "ppo", "--out", str(out), *flags])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_checkpoint_roundtrip_and_corruption(tmp_path):
+    state = {"a": np.arange(6, dtype=np.float32).reshape(2, 3), "b": (np.int32(4), np.ones(2, bool))}
+    save_checkpoint(tmp_path / "c.msgpack", state, evals_done=3)
+    restored, evals_done = load_checkpoint(tmp_path / "c.msgpack", state)
+    assert evals_done == 3
+    np.testing.assert_array_equal(restored["a"], state["a"])
+    with pytest.raises(ValueError, match="does not match"):
+        load_checkpoint(tmp_path / "c.msgpack", {"a": np.zeros((3, 3), np.float32), "b": state["b"]})
+    (tmp_path / "c.msgpack").write_bytes(b"\x00garbage")
+    with pytest.raises(ValueError, match="unreadable"):
+        load_checkpoint(tmp_path / "c.msgpack", state)
+
+
+def test_summaries_by_hand():
+    rows = pd.DataFrame({
+        "config_id": ["a"] * 3 + ["b"] * 3 + ["c"] * 3,
+        "env": "E", "agent": "dqn", "vanilla": False, "cost": 0.1,
+        "seed": [0] * 3 + [1] * 3 + [2] * 3,
+        "env_steps": [1, 2, 3] * 3,
+        "eval_return": [10.0, 30.0, 20.0, 5.0, 50.0, 40.0, 1.0, 2.0, 3.0],
+        "eval_raw_return": [11.0, 33.0, 22.0, 6.0, 60.0, 44.0, 1.0, 2.0, 3.0],
+        "eval_length": [100.0] * 9,
+        "eval_measurements": [10.0, 50.0, 20.0, 100.0, 25.0, 60.0, 100.0, 100.0, 100.0],
+        "diverged": [False] * 4 + [True, True] + [False] * 3,  # b diverged at step 2: its 50 doesn't count
+    })
+    summary = summarize(rows, []).set_index("config_id")
+    assert summary.loc["a"].best_return == 30.0 and summary.loc["a"].best_measured_fraction == 0.5
+    assert summary.loc["a"].measurement_reduction == pytest.approx(0.5)
+    assert summary.loc["b"].best_return == 5.0 and summary.loc["b"].diverged
+    assert summary.loc["c"].final_return == 3.0
+    table = seed_table(summary.reset_index(), [])
+    assert table.best_return_median[0] == 5.0  # median of 30, 5, 3
+    assert table.best_return_q25[0] == pytest.approx(4.0) and table.best_return_q75[0] == pytest.approx(17.5)
+    assert table.diverged[0] == 1
