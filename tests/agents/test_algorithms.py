@@ -173,3 +173,38 @@ def test_invalid_configs_name_the_field():
         DQNConfig(buffer_size=1001).validate()
     with pytest.raises(ValueError, match="cost"):
         DQNConfig(vanilla=True, cost=0.1).validate()
+
+
+def test_n_step_transitions_default_window_longer_than_update():
+    """The default n_step (10) exceeds train_freq (4): each update's window is [train_freq + n - 1] steps, most of
+    them pending from earlier updates, and episode ends inside it must cut the returns (vs a Python loop)."""
+    config = DQNConfig()
+    n, T, E, gamma = config.n_step, config.train_freq, 5, 0.99
+    assert n > T
+    rng = np.random.default_rng(3)
+    terminated = rng.random((T + n - 1, E)) < 0.1
+    done = terminated | (rng.random((T + n - 1, E)) < 0.05)
+    done[:, 0] = terminated[:, 0] = False  # one env whose window has no episode end: a full n-step return
+    window = {
+        "obs": rng.normal(size=(T + n - 1, E, 5)).astype(np.float32),
+        "action": rng.integers(0, 4, (T + n - 1, E)),
+        "reward": (1.0 - 0.2 * rng.integers(0, 2, (T + n - 1, E))).astype(np.float32),
+        "next_obs": rng.normal(size=(T + n - 1, E, 5)).astype(np.float32),
+        "terminated": terminated.astype(np.float32),
+        "done": done.astype(np.float32),
+    }
+    got = n_step_transitions(jax.tree.map(jnp.asarray, window), n, gamma)
+    assert got["reward"].shape == (T, E)
+    for t in range(T):
+        for e in range(E):
+            ret, end = 0.0, t + n - 1
+            for k in range(n):
+                ret += gamma**k * window["reward"][t + k, e]
+                if done[t + k, e]:
+                    end = t + k
+                    break
+            m = end - t + 1
+            assert got["reward"][t, e] == pytest.approx(ret, abs=1e-4)
+            np.testing.assert_allclose(got["next_obs"][t, e], window["next_obs"][end, e])
+            assert got["discount"][t, e] == pytest.approx(gamma**m * (1 - terminated[end, e]), abs=1e-6)
+    np.testing.assert_allclose(np.asarray(got["discount"][:, 0]), gamma**n, rtol=1e-6)
