@@ -11,7 +11,7 @@ PRESETS: dict[str, SweepSpec] = {
         agents=("ppo", "dqn"),
         costs=(0.0, 0.1, 0.2, 0.3),
         seeds=(0, 1, 2),
-        total_timesteps=102_400,
+        total_timesteps=153_600,
         eval_every=10_240,
     ),
     # Bellinger et al. (2022): CartPole (200 steps) and Acrobot, costs 0-0.3 plus vanilla, 10 trials.
