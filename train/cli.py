@@ -18,6 +18,7 @@ from amjax.agents import ALGORITHMS
 from amjax.envs.registry import registered_envs
 from amjax.sweep import SweepMismatchError, SweepSpec, run_sweep
 from amjax.sweep.grid import expand
+from train import report
 from train.presets import PRESETS
 
 
@@ -95,6 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
     commands.add_parser("presets", help="list the named sweeps")
+    report.add_parser(commands)
     return parser
 
 
@@ -162,6 +164,8 @@ _SEED_TABLE_COLUMNS = {
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command == "report":
+        return report.run(args)
     if args.command == "presets":
         for name, spec in PRESETS.items():
             runs = len(expand(spec))

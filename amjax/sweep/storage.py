@@ -158,7 +158,7 @@ def seed_table(summary: pd.DataFrame, hyper_columns: list[str]) -> pd.DataFrame:
     def q(p: float) -> Callable[[pd.Series], float]:
         return lambda s: s.quantile(p)
 
-    table = summary.groupby(keys, dropna=False, sort=False).agg(
+    table = summary.groupby(keys, dropna=False, sort=True).agg(
         seeds=("seed", "count"),
         diverged=("diverged", "sum"),
         best_return_median=("best_return", "median"),

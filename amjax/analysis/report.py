@@ -1,0 +1,165 @@
+"""A self-contained report of a sweep folder: report.md, its figures (PNG, optionally SVG) and its tables.
+
+Works on finished and partly finished sweeps; figures that the data cannot support (no vanilla runs, no cost-0
+runs) are skipped with a note in the report instead of failing.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import pandas as pd
+from matplotlib.figure import Figure
+
+from amjax.analysis import plots
+from amjax.analysis.results import SweepData, hyper_columns, load_results, sweep_progress
+from amjax.analysis.tables import paper_table, to_markdown
+
+_MAX_ROWS = 80  # longer per-configuration tables go to per_config.csv only
+_TABLE_LABELS = {
+    "best_return": "best costed return",
+    "best_return_q25": "q25",
+    "best_return_q75": "q75",
+    "measured_fraction": "measured fraction",
+    "measurement_reduction": "measurements saved",
+    "always_measure": "always measure",
+    "gain_vs_always_measure": "gain vs always",
+    "paper_best_return": "paper",
+    "paper_always_measure": "paper always measure",
+}
+
+_FIGURES: list[tuple[str, str, str]] = [
+    (
+        "learning_curves",
+        "Learning curves",
+        "Median over seeds (band: 25th-75th percentile) of the greedy test costed return, one line per cost; "
+        "cost 0 (black) is the reference. Dotted horizontal lines: the always-measure bound of each cost (the "
+        "best observed test episodes of this env, any run, scored as if every step were measured: raw return - "
+        "cost x length).",
+    ),
+    (
+        "learning_curves_raw",
+        "Learning curves, raw return",
+        "As above without the bounds, and with the raw return (before measurement costs) of each cost dashed: "
+        "the gap between a dashed line and its solid line is what the measurements cost.",
+    ),
+    (
+        "vanilla_vs_cost0",
+        "Vanilla vs cost 0",
+        "Test return on the plain environment (vanilla) and on the active-measure environment with free "
+        "measurements (the paper's first figure): what the doubled action space costs in learning speed.",
+    ),
+    (
+        "cost_analysis",
+        "Best costed return vs cost",
+        "Median over seeds (error bars: 25th-75th percentile) of the best test costed return reached during "
+        "training. Dotted: always-measure bound from this sweep's data; x: the paper's bound; *: the paper's "
+        "median, where it gives one.",
+    ),
+    (
+        "agent_comparison",
+        "Agents compared",
+        "Median best test costed return per cost and agent (error bars: 25th-75th percentile); dotted segments: "
+        "always-measure bound.",
+    ),
+]
+
+
+def _figure_makers(data: SweepData) -> dict[str, Callable[[], Figure]]:
+    results, summary = data.results, data.summary
+    return {
+        "learning_curves": lambda: plots.learning_curves(results),
+        "learning_curves_raw": lambda: plots.learning_curves(results, raw=True, bound="none"),
+        "vanilla_vs_cost0": lambda: plots.vanilla_vs_cost0(results),
+        "cost_analysis": lambda: plots.cost_analysis(summary, results),
+        "agent_comparison": lambda: plots.agent_comparison(summary, results),
+    }
+
+
+def _spec_lines(data: SweepData) -> list[str]:
+    spec = data.metadata.get("spec", {})
+    progress = sweep_progress(data)
+    planned = progress["configs_planned"]
+    points = progress["points_planned"]
+    status = "finished" if progress["finished"] else "partial (still running or interrupted)"
+    lines = [
+        f"- Status: {status}: {progress['configs_started']} of {planned if planned is not None else '?'} "
+        f"configurations started, {progress['points_done']} of {points if points is not None else '?'} "
+        "evaluation points done.",
+        f"- Environments: {', '.join(map(str, spec.get('envs', [])))}; agents: "
+        f"{', '.join(map(str, spec.get('agents', [])))}; costs: {', '.join(f'{c:g}' for c in spec.get('costs', []))}"
+        f"{' + vanilla' if spec.get('vanilla') else ''}; seeds: {len(spec.get('seeds', []))}; mode: "
+        f"{spec.get('mode', 'last')}.",
+        f"- Budget: {int(spec.get('total_timesteps', 0)):,} env steps per configuration, a greedy evaluation "
+        f"({spec.get('eval_episodes')} episodes) every {int(spec.get('eval_every', 0)):,} steps.",
+    ]
+    if spec.get("hyperparams"):
+        lines.append(f"- Hyperparameters: `{json.dumps(spec['hyperparams'])}`.")
+    swept = [c for c in hyper_columns(data.results) if data.results[c].nunique(dropna=False) > 1]
+    if swept:
+        lines.append(f"- Swept hyperparameters ({', '.join(swept)}): each figure shows, per env x agent x cost, "
+                     "the combination with the highest median best costed return; the table lists them all.")
+    versions = data.metadata.get("versions", {})
+    if versions:
+        lines.append("- Versions: " + ", ".join(f"{k} {v}" for k, v in versions.items() if v) +
+                     f"; git {str(data.metadata.get('git_revision'))[:10]}; {data.metadata.get('machine', '?')}.")
+    return lines
+
+
+def _format_paper_table(table: pd.DataFrame) -> pd.DataFrame:
+    shown = table.copy()
+    shown.insert(2, "setting", ["vanilla" if v else f"cost {c:g}" for v, c in zip(shown.vanilla, shown.cost,
+                                                                                  strict=True)])
+    shown = shown.drop(columns=["vanilla", "cost"]).rename(columns=_TABLE_LABELS)
+    return shown.dropna(axis=1, how="all")
+
+
+def write_report(path: str | Path, out: str | Path | None = None, *, formats: Sequence[str] = ("png",)) -> Path:
+    """Write the report of the sweep folder `path` into `out` (default `path/report`); returns report.md's path.
+
+    `formats`: image formats of each figure ("png", "svg", ...); the report embeds the first. Raises
+    `NotASweepError` when `path` is not a sweep folder with results.
+    """
+    data = load_results(path)
+    out = Path(path) / "report" if out is None else Path(out)
+    figure_dir = out / "figures"
+    figure_dir.mkdir(parents=True, exist_ok=True)
+    formats = [f.lstrip(".") for f in formats] or ["png"]
+    makers = _figure_makers(data)
+
+    lines = [f"# Sweep report: {Path(path).resolve().name}", "", *_spec_lines(data), ""]
+    lines += ["## Results table", "",
+              "Per env x agent x cost, medians over seeds: best test costed return (q25-q75), fraction of test "
+              "steps measured at that evaluation, measurements saved vs always measuring (1 - fraction), the "
+              "always-measure bound from this sweep's data and the gain over it, and the paper's numbers "
+              "(Bellinger et al., Canadian AI 2022) where it gives them.", ""]
+    table = paper_table(data.summary, data.results)
+    lines += [to_markdown(_format_paper_table(table)), ""]
+    table.to_csv(out / "paper_table.csv", index=False)
+
+    for name, heading, caption in _FIGURES:
+        lines += [f"## {heading}", ""]
+        try:
+            fig = makers[name]()
+        except ValueError as error:
+            lines += [f"_Not drawn: {error}._", ""]
+            continue
+        plots.save_figure(fig, figure_dir / f"{name}.{formats[0]}", formats[1:])
+        lines += [f"![{heading}](figures/{name}.{formats[0]})", "", caption, ""]
+
+    lines += ["## Measurement maps", "",
+              "A sweep folder stores results, not policies: draw maps of trained policies with "
+              "`amjax.analysis.record_agent` and `plot_measurement_map` (see notebooks/quickstart.ipynb).", ""]
+    configs = data.summary.sort_values(["env", "agent", "vanilla", "cost", "seed"])[
+        ["env", "agent", "vanilla", "cost", "seed", *hyper_columns(data.summary), "best_return",
+         "best_measured_fraction", "best_env_steps", "final_return", "diverged"]
+    ].rename(columns={"best_env_steps": "at env steps"})
+    configs.to_csv(out / "per_config.csv", index=False)
+    lines += ["## Per configuration", "", "Best and final test costed return of every configuration "
+              "(also in per_config.csv).", ""]
+    lines += [to_markdown(configs) if len(configs) <= _MAX_ROWS else f"_{len(configs)} rows: see per_config.csv._", ""]
+    report = out / "report.md"
+    report.write_text("\n".join(lines))
+    return report

@@ -1,0 +1,86 @@
+"""Every notebook runs top to bottom with tiny budgets: the cell tagged `parameters` is followed by an injected cell
+that overrides its values (as papermill does), and the notebook is executed in a fresh kernel in a temporary
+folder (so `runs/...` outputs land there). The kernels share a persistent JAX compilation cache in a temporary
+folder: the notebooks compile some of the same programs, and compiling, not training, dominates these runs.
+Deselect with `-m "not slow"`."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+nbformat = pytest.importorskip("nbformat")
+nbclient = pytest.importorskip("nbclient")
+pytest.importorskip("ipykernel")
+
+NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
+
+# The smallest PPO that compiles quickly: compile time, not training, dominates these runs.
+TINY_PPO = {"num_envs": 4, "num_steps": 32, "update_epochs": 1, "num_minibatches": 1, "hidden": (16,)}
+TINY_BUDGET = {"TOTAL_TIMESTEPS": 2048, "EVAL_EVERY": 1024, "EVAL_EPISODES": 2}
+
+PARAMETERS: dict[str, dict[str, Any]] = {
+    "quickstart.ipynb": {**TINY_BUDGET, "COSTS": (0.0, 0.2), "SEEDS": (0, 1), "PPO_STATIC": TINY_PPO},
+    "env_library.ipynb": {
+        "NUM_COSTS": 16, "NUM_KEYS": 2, "TRAIN_TIMESTEPS": 2048, "EVAL_EVERY": 1024, "PPO_STATIC": TINY_PPO,
+    },
+    "paper_replication.ipynb": {
+        **TINY_BUDGET,
+        "AGENTS": ("ppo",),
+        "COSTS": (0.0, 0.2),
+        "SEEDS": (0, 1),
+        "HYPERPARAMS": TINY_PPO,
+        "MAP_AGENT": "ppo",
+        "MAP_COSTS": (0.1, 0.2),
+    },
+}
+
+
+def _parameters_cell(notebook: Any) -> int:
+    tagged = [i for i, cell in enumerate(notebook.cells) if "parameters" in cell.metadata.get("tags", [])]
+    assert len(tagged) == 1, "a notebook needs exactly one cell tagged 'parameters'"
+    return tagged[0]
+
+
+def test_every_notebook_is_tested_and_clean():
+    assert sorted(p.name for p in NOTEBOOKS.glob("*.ipynb")) == sorted(PARAMETERS)
+    for name, overrides in PARAMETERS.items():
+        notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
+        nbformat.validate(notebook)
+        cell = notebook.cells[_parameters_cell(notebook)]
+        defined = {t.id for node in ast.parse(cell.source).body if isinstance(node, ast.Assign) for t in node.targets}
+        assert set(overrides) <= defined, f"{name}: overrides {set(overrides) - defined} are not parameters"
+        assert not any(c.get("outputs") for c in notebook.cells if c.cell_type == "code"), f"{name}: stored outputs"
+
+
+@pytest.fixture(scope="module")
+def compilation_cache(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("jax_cache")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(PARAMETERS))
+def test_notebook_runs(name, tmp_path, compilation_cache, monkeypatch):
+    # Read by JAX in the kernel process (which inherits this environment).
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(compilation_cache))
+    monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+    notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
+    source = "# Injected by tests/test_notebooks.py\n" + "\n".join(
+        f"{key} = {value!r}" for key, value in PARAMETERS[name].items()
+    )
+    injected = nbformat.v4.new_code_cell(source)
+    injected.metadata["tags"] = ["injected-parameters"]
+    notebook.cells.insert(_parameters_cell(notebook) + 1, injected)
+    client = nbclient.NotebookClient(
+        notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
+    )
+    client.execute()  # raises CellExecutionError, with the failing cell and traceback, on any error
+    images = sum(
+        "image/png" in output.get("data", {})
+        for cell in notebook.cells if cell.cell_type == "code" for output in cell.outputs
+    )
+    assert images >= 2, f"{name}: expected figures in the outputs, found {images}"
