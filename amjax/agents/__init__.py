@@ -2,20 +2,26 @@
 
 from amjax.agents.config import AgentConfig, stack_configs, unstack_config
 from amjax.agents.dqn import DQN, DQNConfig
+from amjax.agents.drqn import DRQN, DRQNConfig
 from amjax.agents.ppo import PPO, PPOConfig
+from amjax.agents.ppo_rnn import PPO_RNN, PPORNNConfig
 from amjax.agents.training import Algorithm, EvalRow, RunState, evaluate, init_run, run_evals
 
-ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN)}
+ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN, DRQN, PPO_RNN)}
 
 __all__ = [
     "ALGORITHMS",
     "DQN",
+    "DRQN",
     "PPO",
+    "PPO_RNN",
     "AgentConfig",
     "Algorithm",
     "DQNConfig",
+    "DRQNConfig",
     "EvalRow",
     "PPOConfig",
+    "PPORNNConfig",
     "RunState",
     "evaluate",
     "init_run",

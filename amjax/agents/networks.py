@@ -7,7 +7,8 @@ normal with the orthogonal initialiser's variance (gain^2 / fan_in) behaves the 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -73,3 +74,96 @@ def dueling_head(x: jax.Array, num_actions: int, dueling: bool) -> jax.Array:
     value = nn.Dense(1, kernel_init=scaled_init(1.0), name="state_value")(x)
     advantage = nn.Dense(num_actions, kernel_init=scaled_init(1.0), name="advantage")(x)
     return value + advantage - advantage.mean(-1, keepdims=True)
+
+
+# -- recurrent networks ---------------------------------------------------------------------------------------
+#
+# A recurrent network is called one step at a time: `apply(params, carry, obs, first) -> (carry, outputs)`, with the
+# carry reset to zeros where `first` (an episode's first step) before the step. `obs`/`first` may have any leading
+# batch axes ([envs] when acting, [time, envs] when bootstrapping every step of a sequence at once); `unroll`
+# scans the step over a time-major sequence. Carries are pytrees of arrays (checkpointable).
+
+CELLS = ("gru", "lstm")
+
+
+def zero_carry(cell: str, size: int, batch_shape: tuple[int, ...]) -> Any:
+    """The initial (all-zero) carry of a `cell` with `size` units for a batch: an array (GRU) or (c, h) (LSTM)."""
+    zeros = jnp.zeros((*batch_shape, size), jnp.float32)
+    return (zeros, zeros) if cell == "lstm" else zeros
+
+
+def reset_carry(carry: Any, first: jax.Array) -> Any:
+    """Zero the carry where `first` (shape = the carry's batch axes)."""
+    return jax.tree.map(lambda c: jnp.where(first[..., None], jnp.zeros_like(c), c), carry)
+
+
+class RecurrentCore(nn.Module):
+    """MLP torso -> one GRU or LSTM step; outputs [torso features, cell output] (a skip connection: the heads see
+    the current observation at once, without waiting for the cell's gates to open, and the memory beside it).
+    Recurrent kernels use `scaled_init` (QR-free, see above)."""
+
+    hidden: Sequence[int] = (64,)
+    rnn_size: int = 64
+    cell: str = "gru"
+    activation: str = "relu"
+
+    @nn.compact
+    def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, jax.Array]:
+        carry = reset_carry(carry, first)
+        x = MLP(self.hidden, self.activation)(obs)
+        inits = {"kernel_init": scaled_init(1.0), "recurrent_kernel_init": scaled_init(1.0)}
+        if self.cell == "lstm":
+            cell = nn.OptimizedLSTMCell(self.rnn_size, **inits, name="lstm")
+        else:
+            cell = nn.GRUCell(self.rnn_size, **inits, name="gru")
+        carry, y = cell(carry, x)
+        return carry, jnp.concatenate([x, y], -1)
+
+
+class RecurrentQNetwork(nn.Module):
+    """DRQN (Hausknecht & Stone 2015): a recurrent core under the dueling head; one step -> (carry, Q-values)."""
+
+    num_actions: int
+    hidden: Sequence[int] = (64,)
+    rnn_size: int = 64
+    cell: str = "gru"
+    activation: str = "relu"
+    dueling: bool = True
+
+    @nn.compact
+    def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, jax.Array]:
+        carry, x = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)(carry, obs, first)
+        return carry, dueling_head(x, self.num_actions, self.dueling)
+
+
+class RecurrentActorCritic(nn.Module):
+    """One recurrent core shared by a categorical policy head and a value head; one step -> (carry, (logits,
+    value))."""
+
+    num_actions: int
+    hidden: Sequence[int] = (64,)
+    rnn_size: int = 64
+    cell: str = "gru"
+    activation: str = "tanh"
+
+    @nn.compact
+    def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, tuple[jax.Array, jax.Array]]:
+        carry, x = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)(carry, obs, first)
+        logits = nn.Dense(self.num_actions, kernel_init=scaled_init(0.01), name="logits")(x)
+        value = nn.Dense(1, kernel_init=scaled_init(1.0), name="value")(x)
+        return carry, (logits, jnp.squeeze(value, -1))
+
+
+def unroll(
+    step: Callable[[Any, jax.Array, jax.Array], tuple[Any, Any]], carry: Any, obs: jax.Array, first: jax.Array
+) -> tuple[Any, Any]:
+    """Scan `step(carry, obs_t, first_t) -> (carry, out)` over a time-major sequence [T, batch, ...].
+
+    Returns (the carry after every step [T, batch, ...], the outputs [T, ...]); the carry after step t is where the
+    bootstrap value of step t's (pre-reset) next observation starts from."""
+
+    def body(carry, xs):
+        carry, out = step(carry, *xs)
+        return carry, (carry, out)
+
+    return jax.lax.scan(body, carry, (obs, first))[1]

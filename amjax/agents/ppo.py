@@ -80,7 +80,7 @@ def _network(config: PPOConfig, env: Any, env_params: Any) -> ActorCritic:
     return ActorCritic(num_actions, tuple(config.hidden), config.activation, config.shared_network)
 
 
-def _optimizer(config: PPOConfig) -> optax.GradientTransformation:
+def make_optimizer(config: PPOConfig) -> optax.GradientTransformation:
     num_updates = config.total_timesteps // config.steps_per_update()
     return clipped_adam(
         config.learning_rate,
@@ -96,7 +96,7 @@ def init(config: PPOConfig, key: jax.Array) -> PPOState:
     net_key, env_key, key = jax.random.split(key, 3)
     envs = reset_envs(env, env_params, env_key, config.num_envs)
     params = _network(config, env, env_params).init(net_key, envs.obs[:1])
-    return PPOState(params, _optimizer(config).init(params), envs, key, jnp.int32(0))
+    return PPOState(params, make_optimizer(config).init(params), envs, key, jnp.int32(0))
 
 
 def gae(
@@ -126,10 +126,36 @@ def gae(
     return advantages, advantages + values
 
 
+def clipped_loss(
+    config: Any,
+    logits: jax.Array,
+    value: jax.Array,
+    action: jax.Array,
+    old_log_prob: jax.Array,
+    old_value: jax.Array,
+    advantage: jax.Array,
+    target: jax.Array,
+) -> jax.Array:
+    """The PPO loss on a batch of any shape [...]: clipped policy objective (advantages normalised over the
+    batch) + vf_coef x clipped value loss - ent_coef x entropy. `config` supplies clip_eps, vf_coef, ent_coef."""
+    log_softmax = jax.nn.log_softmax(logits)
+    log_prob = jnp.take_along_axis(log_softmax, action[..., None], -1)[..., 0]
+    value_clipped = old_value + jnp.clip(value - old_value, -config.clip_eps, config.clip_eps)
+    value_loss = 0.5 * jnp.maximum((value - target) ** 2, (value_clipped - target) ** 2).mean()
+    ratio = jnp.exp(log_prob - old_log_prob)
+    advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+    policy_loss = -jnp.minimum(
+        ratio * advantage,
+        jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps) * advantage,
+    ).mean()
+    entropy = -(jnp.exp(log_softmax) * log_softmax).sum(-1).mean()
+    return policy_loss + config.vf_coef * value_loss - config.ent_coef * entropy
+
+
 def update(config: PPOConfig, state: PPOState) -> tuple[PPOState, UpdateStats]:
     env, env_params, _ = config.make_env()
     network = _network(config, env, env_params)
-    optimizer = _optimizer(config)
+    optimizer = make_optimizer(config)
     rollout_key, epoch_key, key = jax.random.split(state.key, 3)
 
     # 1. Collect a rollout with the current stochastic policy.
@@ -160,20 +186,8 @@ def update(config: PPOConfig, state: PPOState) -> tuple[PPOState, UpdateStats]:
     batch = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)
 
     def loss_fn(params, minibatch):
-        obs, action, old_log_prob, old_value, advantage, target = minibatch
-        logits, value = network.apply(params, obs)
-        log_softmax = jax.nn.log_softmax(logits)
-        log_prob = jnp.take_along_axis(log_softmax, action[:, None], -1)[:, 0]
-        value_clipped = old_value + jnp.clip(value - old_value, -config.clip_eps, config.clip_eps)
-        value_loss = 0.5 * jnp.maximum((value - target) ** 2, (value_clipped - target) ** 2).mean()
-        ratio = jnp.exp(log_prob - old_log_prob)
-        advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
-        policy_loss = -jnp.minimum(
-            ratio * advantage,
-            jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps) * advantage,
-        ).mean()
-        entropy = -(jnp.exp(log_softmax) * log_softmax).sum(-1).mean()
-        return policy_loss + config.vf_coef * value_loss - config.ent_coef * entropy
+        obs, *rest = minibatch
+        return clipped_loss(config, *network.apply(params, obs), *rest)
 
     def minibatch_step(carry, minibatch):
         params, opt_state = carry
@@ -204,4 +218,4 @@ def greedy(config: PPOConfig, state: PPOState):
 PPO = Algorithm("ppo", PPOConfig, init, update, greedy, params=lambda state: state.params)
 train = make_train(PPO)
 
-__all__ = ["PPO", "PPOConfig", "PPOState", "gae", "train"]
+__all__ = ["PPO", "PPOConfig", "PPOState", "clipped_loss", "gae", "make_optimizer", "train"]

@@ -24,9 +24,17 @@ def _lunar_lander() -> tuple[Environment, Any]:
     return env, env.default_params
 
 
+def _memory_probe() -> tuple[Environment, Any]:
+    from amjax.envs.memory_probe import MemoryProbe
+
+    env = MemoryProbe()
+    return env, env.default_params
+
+
 _AMJAX_ENVS: dict[str, EnvFactory] = {
     "CartPole-v0": _cartpole_v0,
     "LunarLander-v3": _lunar_lander,
+    "MemoryProbe-v0": _memory_probe,
 }
 _CUSTOM_ENVS: dict[str, EnvFactory] = {}
 

@@ -1,0 +1,282 @@
+"""DRQN: Dueling Double DQN with a recurrent core (Hausknecht & Stone 2015), trained R2D2-style on stored sequences
+(Kapturowski et al. 2019), so that it can remember what it last measured and skip several measurements in a row.
+
+Network: MLP torso -> GRU or LSTM cell -> dueling head (`networks.RecurrentQNetwork`). The hidden state is the
+agent carry of the shared rollout: it is reset to zeros at every episode's first step (`EnvBatch.first`), when
+acting, when evaluating, and when the learner unrolls a stored sequence (the stored `first` flags).
+
+One `update`: `train_freq` epsilon-greedy steps of `num_envs` envs (hidden state carried across updates) -> one
+new sequence of `burn_in + seq_len` steps per env into the replay buffer (consecutive sequences of an env overlap by
+`burn_in + seq_len - train_freq` steps) -> (once `learning_starts` steps are taken) `gradient_steps` Huber-loss
+steps on `batch_size` sampled sequences -> a (soft or hard) target-network update every `target_update_interval`
+env steps.
+
+Start of a replayed sequence: *stored state + burn-in* (R2D2's best variant). Each stored sequence keeps the hidden
+state the actor had at its first step (`start`); the learner (online and target network alike) unrolls the first
+`burn_in` steps from it without gradient, then computes the loss on the remaining `seq_len` steps. `burn_in=0` is
+the plain stored-state variant.
+
+Targets: for every step t of the trained part, the bootstrap Q-values come from one more recurrent step on the
+pre-reset next observation from the carry after step t (no reset), so truncated episodes bootstrap correctly and
+the values never mix episodes. n-step returns (`dqn.n_step_transitions`) stop at an episode's end and at the
+sequence's end, and use double-Q targets (`dqn.td_targets`) from a target network.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from amjax.agents.config import AgentConfig, static
+from amjax.agents.dqn import DQNConfig, epsilon, make_optimizer, n_step_transitions, td_targets, transition_arrays
+from amjax.agents.networks import CELLS, RecurrentQNetwork, unroll, zero_carry
+from amjax.agents.replay import ReplayBuffer, sequence_add, sequence_init, sequence_sample, sequence_windows
+from amjax.agents.rollout import EnvBatch, reset_envs, rollout
+from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, make_train
+from amjax.validation import check_choice, check_positive_int
+
+
+@struct.dataclass
+class DRQNConfig(AgentConfig):
+    num_envs: int = static(4)
+    buffer_size: int = static(2_000)  # sequences (each burn_in + seq_len steps)
+    batch_size: int = static(32)  # sequences per gradient step
+    seq_len: int = static(16)  # trained steps per sequence
+    burn_in: int = static(8)  # steps unrolled from the stored hidden state before the trained ones
+    learning_starts: int = static(1_000)  # env steps taken before the first gradient step
+    train_freq: int = static(8)  # steps per env between gradient phases (= the stride between stored sequences)
+    gradient_steps: int = static(4)  # 4 x 512 sampled steps per 32 env steps
+    target_update_interval: int = static(2_000)  # env steps between target updates (250 gradient steps)
+    hidden: Sequence[int] = static((64,))  # MLP under the recurrent cell
+    rnn_size: int = static(64)
+    cell: str = static("gru")  # "gru" or "lstm"
+    activation: str = static("relu")
+    dueling: bool = static(True)
+    double_q: bool = static(True)
+    n_step: int = static(3)  # multi-step returns inside each sequence (1 = one-step)
+    anneal_lr: bool = static(True)  # linear decay of the learning rate to 0 over training
+    learning_rate: float = 5e-4
+    gamma: float = 0.99
+    tau: float = 1.0  # target update rate (1 = hard copy)
+    epsilon_start: float = 1.0
+    epsilon_end: float = 0.05
+    exploration_fraction: float = 0.2  # fraction of training over which epsilon decays linearly
+    max_grad_norm: float = 10.0
+
+    TRACED_BOUNDS: ClassVar[dict[str, str]] = DQNConfig.TRACED_BOUNDS
+
+    @property
+    def sequence_length(self) -> int:
+        """Steps per stored sequence."""
+        return self.burn_in + self.seq_len
+
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.train_freq
+
+    def validate(self) -> DRQNConfig:
+        for name in (
+            "num_envs", "buffer_size", "batch_size", "seq_len", "train_freq", "gradient_steps",
+            "target_update_interval", "rnn_size", "n_step",
+        ):
+            check_positive_int(name, getattr(self, name))
+        check_positive_int("burn_in", self.burn_in, minimum=0)
+        check_positive_int("learning_starts", self.learning_starts, minimum=0)
+        check_choice("activation", self.activation, ("tanh", "relu", "elu"))
+        check_choice("cell", self.cell, CELLS)
+        if self.train_freq > self.sequence_length:
+            raise ValueError(
+                f"train_freq={self.train_freq} must be at most burn_in + seq_len = {self.sequence_length} "
+                "(every step must land in a stored sequence)"
+            )
+        if self.buffer_size % self.num_envs:
+            raise ValueError(
+                f"buffer_size={self.buffer_size} (sequences) must be a multiple of num_envs={self.num_envs}"
+            )
+        return super().validate()
+
+
+@struct.dataclass
+class DRQNState:
+    params: Any
+    target_params: Any
+    opt_state: Any
+    buffer: ReplayBuffer
+    envs: EnvBatch
+    carry: Any  # the hidden state of every training env
+    pending: dict[str, Any]  # the last burn_in + seq_len - train_freq steps per env (with their hidden states)
+    key: jax.Array
+    env_steps: jax.Array
+
+
+def network(config: DRQNConfig) -> RecurrentQNetwork:
+    env, env_params, _ = config.make_env()
+    return RecurrentQNetwork(
+        env.action_space(env_params).n, tuple(config.hidden), config.rnn_size, config.cell, config.activation,
+        config.dueling,
+    )
+
+
+def _policy(config: DRQNConfig, params: Any, eps: jax.Array):
+    """The epsilon-greedy act function; its extras (the hidden state before the step and the `first` flag) are
+    what sequence storage needs."""
+    net = network(config)
+
+    def act(batch: EnvBatch, carry: Any, key: jax.Array):
+        new_carry, q = net.apply(params, carry, batch.obs, batch.first)
+        explore_key, random_key = jax.random.split(key)
+        greedy_action = jnp.argmax(q, -1)
+        random_action = jax.random.randint(random_key, greedy_action.shape, 0, net.num_actions)
+        explore = jax.random.uniform(explore_key, greedy_action.shape) < eps
+        return jnp.where(explore, random_action, greedy_action), new_carry, (carry, batch.first)
+
+    return act
+
+
+def _steps(transitions: Any, first: jax.Array) -> dict[str, jax.Array]:
+    return {**transition_arrays(transitions), "first": first}
+
+
+def init(config: DRQNConfig, key: jax.Array) -> DRQNState:
+    env, env_params, _ = config.make_env()
+    net_key, env_key, warmup_key, key = jax.random.split(key, 4)
+    envs = reset_envs(env, env_params, env_key, config.num_envs)
+    carry = zero_carry(config.cell, config.rnn_size, (config.num_envs,))
+    params = network(config).init(net_key, carry, envs.obs, envs.first)
+
+    # The first burn_in + seq_len - train_freq steps of each env, waiting to complete their sequence: random
+    # actions, with the initial network's hidden states (not counted as training steps).
+    act = _policy(config, params, jnp.float32(1.0))
+    warmup = config.sequence_length - config.train_freq
+    envs, carry, transitions, (carries, first) = rollout(env, env_params, envs, carry, act, warmup_key, warmup)
+    obs = envs.obs[0]
+    one_step = {"obs": obs, "action": jnp.int32(0), "reward": jnp.float32(0), "next_obs": obs,
+                "terminated": jnp.float32(0), "done": jnp.float32(0), "first": jnp.bool_(False)}
+    return DRQNState(
+        params=params,
+        target_params=params,
+        opt_state=make_optimizer(config).init(params),
+        buffer=sequence_init(one_step, jax.tree.map(lambda c: c[0], carry), config.sequence_length, config.buffer_size),
+        envs=envs,
+        carry=carry,
+        pending={"steps": _steps(transitions, first), "carry": carries},
+        key=key,
+        env_steps=jnp.int32(0),
+    )
+
+
+def q_values(config: DRQNConfig, params: Any, steps: dict[str, jax.Array], start: Any) -> tuple[jax.Array, jax.Array]:
+    """Unroll a batch of stored sequences (time-major [burn_in + seq_len, batch]) from their stored start states.
+
+    The first `burn_in` steps only warm the hidden state up (no gradient). For the trained steps returns the
+    Q-values [seq_len, batch, A] and the bootstrap Q-values of each step's pre-reset next observation."""
+    net = network(config)
+
+    def step(carry, obs, first):
+        return net.apply(params, carry, obs, first)
+
+    carry = start
+    if config.burn_in:
+        carries, _ = unroll(step, start, steps["obs"][: config.burn_in], steps["first"][: config.burn_in])
+        carry = jax.lax.stop_gradient(jax.tree.map(lambda c: c[-1], carries))
+    trained = jax.tree.map(lambda x: x[config.burn_in :], steps)
+    carries, q = unroll(step, carry, trained["obs"], trained["first"])
+    _, q_next = net.apply(params, carries, trained["next_obs"], jnp.zeros_like(trained["first"]))
+    return q, q_next
+
+
+def sequence_targets(
+    config: DRQNConfig, steps: dict[str, jax.Array], q_next_online: jax.Array, q_next_target: jax.Array
+) -> jax.Array:
+    """Double-Q n-step targets for every trained step of a batch of sequences ([seq_len, batch]).
+
+    A return stops at the first episode end (`done`; bootstrapping only if it was a truncation) and at the
+    sequence's last step, so it never reaches into another episode or past the stored data."""
+    trained = jax.tree.map(lambda x: x[config.burn_in :], steps)
+    num_actions = q_next_online.shape[-1]
+    window = {
+        "obs": trained["reward"],  # unused
+        "action": trained["action"],
+        "reward": trained["reward"],
+        "next_obs": jnp.concatenate([q_next_online, q_next_target], -1),  # the bootstrap values ride along
+        "terminated": trained["terminated"],
+        "done": trained["done"].at[-1].set(1.0),  # cut at the sequence's end
+    }
+    padding = jax.tree.map(lambda x: jnp.zeros((config.n_step - 1, *x.shape[1:]), x.dtype), window)
+    window = jax.tree.map(lambda x, p: jnp.concatenate([x, p]), window, padding)
+    items = n_step_transitions(window, config.n_step, config.gamma)
+    q_online, q_target = items["next_obs"][..., :num_actions], items["next_obs"][..., num_actions:]
+    return td_targets(q_online, q_target, items["reward"], items["discount"], config.double_q)
+
+
+def loss(config: DRQNConfig, params: Any, target_params: Any, steps: dict[str, jax.Array], start: Any) -> jax.Array:
+    """Mean Huber TD error over the trained steps of a batch of sequences."""
+    q, q_next_online = q_values(config, params, steps, start)
+    _, q_next_target = q_values(config, target_params, steps, start)
+    targets = sequence_targets(config, steps, q_next_online, q_next_target)
+    action = steps["action"][config.burn_in :]
+    q_taken = jnp.take_along_axis(q, action[..., None], -1)[..., 0]
+    return optax.huber_loss(q_taken, jax.lax.stop_gradient(targets)).mean()
+
+
+def update(config: DRQNConfig, state: DRQNState) -> tuple[DRQNState, UpdateStats]:
+    env, env_params, _ = config.make_env()
+    optimizer = make_optimizer(config)
+    rollout_key, learn_key, key = jax.random.split(state.key, 3)
+
+    # 1. Act epsilon-greedily for train_freq steps; store one sequence per env.
+    act = _policy(config, state.params, epsilon(config, state.env_steps))
+    envs, carry, transitions, (carries, first) = rollout(
+        env, env_params, state.envs, state.carry, act, rollout_key, config.train_freq
+    )
+    window, pending = sequence_windows(
+        state.pending, {"steps": _steps(transitions, first), "carry": carries}, config.train_freq
+    )
+    buffer = sequence_add(state.buffer, window["steps"], jax.tree.map(lambda c: c[0], window["carry"]))
+    env_steps = state.env_steps + config.steps_per_update()
+
+    # 2. Gradient steps on sampled sequences, once learning has started.
+    def gradient_step(carry, key):
+        params, opt_state = carry
+        steps, start = sequence_sample(buffer, key, config.batch_size)
+        value, grads = jax.value_and_grad(loss, argnums=1)(config, params, state.target_params, steps, start)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), value
+
+    (params, opt_state), losses = jax.lax.scan(
+        gradient_step, (state.params, state.opt_state), jax.random.split(learn_key, config.gradient_steps)
+    )
+    learning = env_steps >= config.learning_starts
+    params, opt_state = jax.tree.map(
+        lambda new, old: jnp.where(learning, new, old), (params, opt_state), (state.params, state.opt_state)
+    )
+
+    # 3. Target network: blend with rate tau each time target_update_interval env steps pass.
+    sync = learning & (
+        env_steps // config.target_update_interval != state.env_steps // config.target_update_interval
+    )
+    target_params = optax.incremental_update(params, state.target_params, jnp.where(sync, config.tau, 0.0))
+
+    new_state = DRQNState(params, target_params, opt_state, buffer, envs, carry, pending, key, env_steps)
+    return new_state, UpdateStats(jnp.where(learning, losses.mean(), 0.0), EpisodeSums.of(transitions))
+
+
+def greedy(config: DRQNConfig, state: DRQNState):
+    """The greedy policy and a zero hidden state for `eval_episodes` test envs."""
+    act = _policy(config, state.params, jnp.float32(0.0))
+
+    def greedy_act(batch: EnvBatch, carry: Any, key: jax.Array):
+        action, carry, _ = act(batch, carry, key)
+        return action, carry, None
+
+    return greedy_act, zero_carry(config.cell, config.rnn_size, (config.eval_episodes,))
+
+
+DRQN = Algorithm("drqn", DRQNConfig, init, update, greedy, params=lambda state: state.params)
+train = make_train(DRQN)
+
+__all__ = ["DRQN", "DRQNConfig", "DRQNState", "greedy", "loss", "q_values", "sequence_targets", "train"]

@@ -1,0 +1,183 @@
+"""Recurrent PPO: PPO (ppo.py) with a GRU or LSTM core shared by the policy and value heads.
+
+The hidden state is the agent carry of the shared rollout, carried from one update's rollout into the next and
+reset to zeros at every episode's first step (`EnvBatch.first`, also stored with the rollout).
+
+One `update`: roll out `num_steps` steps of `num_envs` envs, keeping the hidden state each env started the rollout
+with -> GAE advantages (`ppo.gae`; the bootstrap value of each step's pre-reset next observation is one more
+recurrent step from the carry after that step, so truncated episodes bootstrap correctly) -> `update_epochs`
+epochs of `num_minibatches` minibatches of *whole env sequences*: each minibatch re-unrolls its envs' stored
+[num_steps] sequences from their initial hidden states with the current parameters (resetting at the stored
+episode starts) and takes a step on the clipped objective (`ppo.clipped_loss`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from amjax.agents.config import AgentConfig, static
+from amjax.agents.networks import CELLS, RecurrentActorCritic, unroll, zero_carry
+from amjax.agents.ppo import PPOConfig, clipped_loss, gae, make_optimizer
+from amjax.agents.rollout import EnvBatch, reset_envs, rollout
+from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, make_train
+from amjax.validation import check_choice, check_positive_int
+
+
+@struct.dataclass
+class PPORNNConfig(AgentConfig):
+    num_envs: int = static(8)
+    num_steps: int = static(128)  # rollout length per env per update (the length of the trained sequences)
+    update_epochs: int = static(4)
+    num_minibatches: int = static(4)  # minibatches of whole env sequences: must divide num_envs
+    hidden: Sequence[int] = static((64,))  # MLP under the recurrent cell
+    rnn_size: int = static(64)
+    cell: str = static("gru")  # "gru" or "lstm"
+    activation: str = static("tanh")
+    anneal_lr: bool = static(True)  # linear decay of the learning rate to 0 over training
+    learning_rate: float = 1e-3
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.2
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+
+    TRACED_BOUNDS: ClassVar[dict[str, str]] = PPOConfig.TRACED_BOUNDS
+
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.num_steps
+
+    def validate(self) -> PPORNNConfig:
+        for name in ("num_envs", "num_steps", "update_epochs", "num_minibatches", "rnn_size"):
+            check_positive_int(name, getattr(self, name))
+        check_choice("activation", self.activation, ("tanh", "relu", "elu"))
+        check_choice("cell", self.cell, CELLS)
+        if self.num_envs % self.num_minibatches:
+            raise ValueError(
+                f"num_minibatches={self.num_minibatches} must divide num_envs={self.num_envs} "
+                "(minibatches are whole env sequences)"
+            )
+        return super().validate()
+
+
+@struct.dataclass
+class PPORNNState:
+    params: Any
+    opt_state: Any
+    envs: EnvBatch
+    carry: Any  # the hidden state of every training env
+    key: jax.Array
+    updates: jax.Array
+
+
+def network(config: PPORNNConfig) -> RecurrentActorCritic:
+    env, env_params, _ = config.make_env()
+    return RecurrentActorCritic(
+        env.action_space(env_params).n, tuple(config.hidden), config.rnn_size, config.cell, config.activation
+    )
+
+
+def init(config: PPORNNConfig, key: jax.Array) -> PPORNNState:
+    env, env_params, _ = config.make_env()
+    net_key, env_key, key = jax.random.split(key, 3)
+    envs = reset_envs(env, env_params, env_key, config.num_envs)
+    carry = zero_carry(config.cell, config.rnn_size, (config.num_envs,))
+    params = network(config).init(net_key, carry, envs.obs, envs.first)
+    return PPORNNState(params, make_optimizer(config).init(params), envs, carry, key, jnp.int32(0))
+
+
+def collect(
+    config: PPORNNConfig, params: Any, envs: EnvBatch, carry: Any, key: jax.Array
+) -> tuple[EnvBatch, Any, Any, tuple[jax.Array, ...]]:
+    """Roll out `num_steps` steps with the stochastic policy. Returns the final envs and carry, the transitions
+    [T, E] and per step (log-probability, value, `first` flag, carry after the step)."""
+    env, env_params, _ = config.make_env()
+    net = network(config)
+
+    def act(batch: EnvBatch, carry: Any, key: jax.Array):
+        carry, (logits, value) = net.apply(params, carry, batch.obs, batch.first)
+        action = jax.random.categorical(key, logits)
+        log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], -1)[:, 0]
+        return action, carry, (log_prob, value, batch.first, carry)
+
+    return rollout(env, env_params, envs, carry, act, key, config.num_steps)
+
+
+def unroll_sequences(
+    config: PPORNNConfig, params: Any, start: Any, obs: jax.Array, first: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """Policy logits and values [T, E, ...] of time-major sequences re-unrolled from their initial carries."""
+    net = network(config)
+    _, (logits, value) = unroll(lambda c, o, f: net.apply(params, c, o, f), start, obs, first)
+    return logits, value
+
+
+def update(config: PPORNNConfig, state: PPORNNState) -> tuple[PPORNNState, UpdateStats]:
+    net = network(config)
+    optimizer = make_optimizer(config)
+    rollout_key, epoch_key, key = jax.random.split(state.key, 3)
+
+    # 1. Collect a rollout with the current stochastic policy, keeping each step's carry and `first` flag.
+    envs, carry, transitions, (log_probs, values, first, carries) = collect(
+        config, state.params, state.envs, state.carry, rollout_key
+    )
+
+    # 2. Advantages: the value of every pre-reset next observation, one recurrent step on from its carry.
+    _, (_, next_values) = net.apply(state.params, carries, transitions.next_obs, jnp.zeros_like(first))
+    advantages, targets = gae(
+        transitions.reward,
+        values,
+        next_values,
+        transitions.terminated.astype(jnp.float32),
+        transitions.done,
+        config.gamma,
+        config.gae_lambda,
+    )
+
+    # 3. Epochs of minibatches of whole env sequences, re-unrolled from the rollout's initial carries.
+    sequences = (transitions.obs, first, transitions.action, log_probs, values, advantages, targets)  # [T, E, ...]
+
+    def loss_fn(params, minibatch):
+        start, (obs, first, *rest) = minibatch
+        return clipped_loss(config, *unroll_sequences(config, params, start, obs, first), *rest)
+
+    def minibatch_step(carry, minibatch):
+        params, opt_state = carry
+        loss, grads = jax.value_and_grad(loss_fn)(params, minibatch)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return (optax.apply_updates(params, updates), opt_state), loss
+
+    def epoch(carry, key):
+        order = jax.random.permutation(key, config.num_envs).reshape(config.num_minibatches, -1)  # [M, E / M]
+        starts = jax.tree.map(lambda c: c[order], state.carry)
+        minibatches = jax.tree.map(lambda x: jnp.moveaxis(x[:, order], 1, 0), sequences)  # [M, T, E / M, ...]
+        return jax.lax.scan(minibatch_step, carry, (starts, minibatches))
+
+    (params, opt_state), losses = jax.lax.scan(
+        epoch, (state.params, state.opt_state), jax.random.split(epoch_key, config.update_epochs)
+    )
+    new_state = PPORNNState(params, opt_state, envs, carry, key, state.updates + 1)
+    return new_state, UpdateStats(losses.mean(), EpisodeSums.of(transitions))
+
+
+def greedy(config: PPORNNConfig, state: PPORNNState):
+    """The most probable action, carrying the hidden state; a zero hidden state for `eval_episodes` test envs."""
+    net = network(config)
+
+    def act(batch: EnvBatch, carry: Any, key: jax.Array):
+        carry, (logits, _) = net.apply(state.params, carry, batch.obs, batch.first)
+        return jnp.argmax(logits, -1), carry, None
+
+    return act, zero_carry(config.cell, config.rnn_size, (config.eval_episodes,))
+
+
+PPO_RNN = Algorithm("ppo-rnn", PPORNNConfig, init, update, greedy, params=lambda state: state.params)
+train = make_train(PPO_RNN)
+
+__all__ = ["PPO_RNN", "PPORNNConfig", "PPORNNState", "collect", "greedy", "network", "train", "unroll_sequences"]
