@@ -2,13 +2,18 @@
 
 Written for the throughput benchmark, independent of amjax's agent code (it uses amjax only for the environment
 and to read the hyperparameters). `make_train(config)` returns `train(key, cost)`, a pure function built from
-`lax.scan`s over iterations of: `train_freq` epsilon-greedy steps of `num_envs` envs into a ring replay buffer ->
-(`lax.cond`, once `learning_starts` steps are stored) `gradient_steps` Huber-loss steps -> a target update with rate
-`tau` each time `target_update_interval` env steps have passed. Choices:
+`lax.scan`s over iterations of: `train_freq` epsilon-greedy steps of `num_envs` envs -> their `n_step`-step
+transitions into a ring replay buffer -> (`lax.cond`, once `learning_starts` steps are stored) `gradient_steps`
+Huber-loss steps -> a target update with rate `tau` each time `target_update_interval` env steps have passed.
+Choices:
 
 - Same algorithm and hyperparameters as the `amjax.agents.dqn.DQNConfig` passed in (read field by field; dueling
   and double-Q heads included, so `DQNConfig()` gives a Dueling Double DQN and `dueling=False, double_q=False` the
-  plain DQN of Stable-Baselines3). Hyperparameters are Python constants (plain PureJaxRL style); only the key and
+  plain DQN of Stable-Baselines3; `n_step=1, anneal_lr=False` its one-step targets and constant learning rate).
+  n-step returns as amjax defines them: the last n-1 steps of each env wait until their window is complete, the
+  window is primed with n-1 random steps (not counted), returns stop at an episode's end, and the bootstrap is
+  discounted by gamma^m (1 - terminated). With `anneal_lr` the learning rate decays linearly to 0 over the run's
+  optimiser steps. Hyperparameters are Python constants (plain PureJaxRL style); only the key and
   the measurement cost are arguments, so `jax.vmap(train)` sweeps seeds x costs.
 - Same environment: `amjax.make(env_id)` (active-measure) or, with `vanilla=True`, the plain gymnax environment.
 - The replay buffer is a dict of arrays written with `dynamic_update_slice` (PureJaxRL uses flashbax, which is not
@@ -78,7 +83,29 @@ def make_train(
     gamma, tau = float(config.gamma), float(config.tau)
     eps_start, eps_end = float(config.epsilon_start), float(config.epsilon_end)
     decay_steps = max(float(config.exploration_fraction) * config.total_timesteps, 1.0)
-    tx = optax.chain(optax.clip_by_global_norm(float(config.max_grad_norm)), optax.adam(float(config.learning_rate)))
+    n_step = config.n_step
+    lr, opt_steps = float(config.learning_rate), max(num_iters * config.gradient_steps, 1)
+    schedule = (lambda count: lr * (1.0 - jnp.minimum(count, opt_steps) / opt_steps)) if config.anneal_lr else lr
+    tx = optax.chain(optax.clip_by_global_norm(float(config.max_grad_norm)), optax.adam(schedule))
+
+    def n_step_items(window):
+        """n-step transitions for the first T steps of a [T + n - 1, num_envs] window of one-step steps."""
+        T = window["reward"].shape[0] - (n_step - 1)
+        reward, discount = jnp.zeros_like(window["reward"][:T]), jnp.zeros_like(window["reward"][:T])
+        next_obs, alive, scale = window["next_obs"][:T], jnp.ones_like(reward), jnp.ones_like(reward)
+        for k in range(n_step):
+            reward = reward + alive * scale * window["reward"][k : k + T]
+            scale = scale * gamma
+            next_obs = jnp.where(alive[..., None] > 0, window["next_obs"][k : k + T], next_obs)
+            discount = jnp.where(alive > 0, scale * (1.0 - window["terminated"][k : k + T]), discount)
+            alive = alive * (1.0 - window["done"][k : k + T])
+        return {
+            "obs": window["obs"][:T],
+            "action": window["action"][:T],
+            "reward": reward,
+            "next_obs": next_obs,
+            "discount": discount,
+        }
 
     def train(key: jax.Array, cost: jax.Array) -> jax.Array:
         env_params = with_cost(base_params, cost)
@@ -91,7 +118,7 @@ def make_train(
             "action": jnp.zeros(config.buffer_size, jnp.int32),
             "reward": jnp.zeros(config.buffer_size, jnp.float32),
             "next_obs": jnp.zeros((config.buffer_size, *obs_shape), jnp.float32),
-            "terminated": jnp.zeros(config.buffer_size, jnp.float32),
+            "discount": jnp.zeros(config.buffer_size, jnp.float32),
         }
 
         def loss_fn(params, target_params, batch):
@@ -103,36 +130,50 @@ def make_train(
             else:
                 best = jnp.argmax(q_next_target, -1)
             q_next = jnp.take_along_axis(q_next_target, best[:, None], -1)[:, 0]
-            target = batch["reward"] + gamma * (1.0 - batch["terminated"]) * q_next
+            target = batch["reward"] + batch["discount"] * q_next
             return optax.huber_loss(q_taken, jax.lax.stop_gradient(target)).mean()
 
-        def iteration(runner_state, _):
-            params, target_params, opt_state, buffer, position, size, env_state, obs, timesteps, key = runner_state
-            key, rollout_key, learn_key = jax.random.split(key, 3)
-            eps = eps_start + jnp.minimum(timesteps / decay_steps, 1.0) * (eps_end - eps_start)
-
-            # 1. train_freq epsilon-greedy steps.
+        def make_env_step(params, eps):
             def env_step(carry, step_key):
                 env_state, obs = carry
                 explore_key, random_key, env_key = jax.random.split(step_key, 3)
                 greedy = jnp.argmax(network.apply(params, obs), -1)
                 random = jax.random.randint(random_key, (num_envs,), 0, num_actions)
                 action = jnp.where(jax.random.uniform(explore_key, (num_envs,)) < eps, random, greedy)
-                next_obs, env_state, reward, terminated, _, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                next_obs, env_state, reward, terminated, truncated, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
                     jax.random.split(env_key, num_envs), env_state, action, env_params
                 )
-                item = {
+                step = {
                     "obs": obs,
                     "action": action,
                     "reward": reward,
                     "next_obs": info["final_observation"],
                     "terminated": terminated.astype(jnp.float32),
+                    "done": (terminated | truncated).astype(jnp.float32),
                 }
-                return (env_state, next_obs), item
+                return (env_state, next_obs), step
 
-            (env_state, obs), items = jax.lax.scan(
-                env_step, (env_state, obs), jax.random.split(rollout_key, train_freq)
+            return env_step
+
+        # Prime the n-step window with n - 1 random steps per env (eps = 1; not counted as training steps).
+        key, warmup_key = jax.random.split(key)
+        (env_state, obs), pending = jax.lax.scan(
+            make_env_step(params, 1.0), (env_state, obs), jax.random.split(warmup_key, n_step - 1)
+        )
+
+        def iteration(runner_state, _):
+            params, target_params, opt_state, buffer, position, size, env_state, obs, pending, timesteps, key = (
+                runner_state
             )
+            key, rollout_key, learn_key = jax.random.split(key, 3)
+            eps = eps_start + jnp.minimum(timesteps / decay_steps, 1.0) * (eps_end - eps_start)
+
+            # 1. train_freq epsilon-greedy steps -> the n-step transitions of the first train_freq window steps.
+            (env_state, obs), steps = jax.lax.scan(
+                make_env_step(params, eps), (env_state, obs), jax.random.split(rollout_key, train_freq)
+            )
+            window = jax.tree.map(lambda p, x: jnp.concatenate([p, x]), pending, steps)
+            items, pending = n_step_items(window), jax.tree.map(lambda x: x[train_freq:], window)
 
             # 2. Store them in the ring buffer.
             items = jax.tree.map(lambda x: x.reshape(steps_per_iter, *x.shape[2:]), items)
@@ -181,6 +222,7 @@ def make_train(
                 size,
                 env_state,
                 obs,
+                pending,
                 new_timesteps,
                 key,
             )
@@ -217,6 +259,7 @@ def make_train(
             jnp.int32(0),
             env_state,
             obs,
+            pending,
             jnp.int32(0),
             key,
         )
@@ -238,7 +281,7 @@ if __name__ == "__main__":
     # A short learning check: 8 seeds at cost 0.1 on the active-measure CartPole-v0.
     import time
 
-    config = DQNConfig(total_timesteps=50_000, eval_every=5_000, buffer_size=50_000)
+    config = DQNConfig(total_timesteps=50_000, eval_every=5_000, buffer_size=50_000)  # amjax's DQN defaults
     train = jax.jit(jax.vmap(make_train(config)))
     keys = jax.random.split(jax.random.PRNGKey(0), 8)
     start = time.perf_counter()

@@ -41,7 +41,7 @@ HERE = Path(__file__).resolve().parent
 COSTS = (0.1, 0.2, 0.3)  # cycled over the configurations of an active-measure case
 ENV_ID = "CartPole-v0"
 MAX_EPISODE_STEPS = 200  # CartPole-v0; an evaluation scans this many steps whatever the episodes do
-TRANSITION_BYTES = 52  # obs + next_obs (5 float32 each with the flag) + action + reward + terminated
+TRANSITION_BYTES = 52  # obs + next_obs (5 float32 each with the flag) + action + reward + discount
 IMPLS = ("amjax", "amjax-vanilla", "reference", "reference-vanilla")
 IMPL_LABELS = {
     "amjax": "amjax",
@@ -81,6 +81,8 @@ SB3_DQN = {
     "activation": "relu",
     "dueling": False,
     "double_q": False,
+    "n_step": 1,  # one-step targets
+    "anneal_lr": False,  # constant learning rate
     "num_envs": 1,
 }
 
@@ -160,6 +162,8 @@ def _run_amjax(case: dict[str, Any]) -> dict[str, Any]:
 
     def run():
         states = init_compiled(stacked, keys)
+        # As the runner does (fresh or restored states alike): plain arrays through NumPy, a host round trip.
+        states = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), states)
         last = None
         for _ in range(num_evals // chunk_evals):
             states, rows = chunk_compiled(stacked, states)  # states are donated, as in the runner
@@ -600,15 +604,17 @@ def note_lines(args: argparse.Namespace, results: list[dict[str, Any]]) -> list[
         "fetched after each (no disk writes or checkpoints). Reference: one jit(vmap(train)) program.",
         f"Active-measure configs use costs {', '.join(map(str, COSTS))} in turn (traced: one compiled program) and "
         "seeds 0..n-1; vanilla-env configs cost 0.",
-        "DQN buffer/config: min(DQNConfig's default 50,000, steps/config): a buffer at least as large as the run "
+        f"DQN buffer/config: min(DQNConfig's default {DQNConfig().buffer_size:,}, steps/config): a buffer at least "
+        "as large as the run "
         "never wraps, so the run is the same as with a larger one. Replay memory = configs x buffer x "
-        f"{TRANSITION_BYTES} B (obs and next_obs of 5 float32 + action + reward + terminated): "
+        f"{TRANSITION_BYTES} B (obs and next_obs of 5 float32 + action + reward + discount): "
         + ", ".join(
             f"{r['configs']} x {r['buffer']:,} = {r['configs'] * r['buffer'] * TRANSITION_BYTES / 2**20:,.1f} MiB"
             for r in results
             if r["impl"] in ("amjax", "amjax-sb3") and r["agent"] == "dqn"
         )
-        + ". SB3's 1e6 buffer x 1024 configs would need 50 GiB; 50,000 x 1024 is 2.5 GiB.",
+        + f". SB3's 1e6 buffer x 1024 configs would need 50 GiB; {DQNConfig().buffer_size:,} x 1024 would need "
+        f"{DQNConfig().buffer_size * 1024 * TRANSITION_BYTES / 2**30:.1f} GiB.",
         "Peak RSS is the child process's maximum resident set (jax, compiled programs and buffers included)"
         + (f"; a child's RSS before compiling is {min(baselines):.0f}-{max(baselines):.0f} MiB." if baselines else "."),
     ]
@@ -665,7 +671,7 @@ def main() -> None:
         "--buffer",
         type=int,
         default=None,
-        help="DQN buffer per config for every size (default: min(50,000, steps per config))",
+        help="DQN buffer per config for every size (default: min(DQNConfig's buffer_size, steps per config))",
     )
     parser.add_argument(
         "--sb3",
