@@ -5,6 +5,7 @@ from amjax.agents.dqn import DQN, DQNConfig
 from amjax.agents.drqn import DRQN, DRQNConfig
 from amjax.agents.ppo import PPO, PPOConfig
 from amjax.agents.ppo_rnn import PPO_RNN, PPORNNConfig
+from amjax.agents.saved import PolicyFileError, SavedPolicy, load_policy, save_policy
 from amjax.agents.training import Algorithm, EvalRow, RunState, evaluate, init_run, run_evals
 
 ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN, DRQN, PPO_RNN)}
@@ -22,10 +23,14 @@ __all__ = [
     "EvalRow",
     "PPOConfig",
     "PPORNNConfig",
+    "PolicyFileError",
     "RunState",
+    "SavedPolicy",
     "evaluate",
     "init_run",
+    "load_policy",
     "run_evals",
+    "save_policy",
     "stack_configs",
     "unstack_config",
 ]

@@ -61,6 +61,27 @@ class AgentConfig:
     def traced_fields(cls) -> tuple[str, ...]:
         return tuple(f.name for f in dataclasses.fields(cls) if f.metadata.get("pytree_node", True))
 
+    def to_dict(self) -> dict[str, Any]:
+        """Every field as JSON-ready Python values (traced leaves as floats, tuples as lists)."""
+
+        def plain(value: Any) -> Any:
+            if isinstance(value, tuple | list):
+                return [plain(v) for v in value]
+            if isinstance(value, bool | int | float | str) or value is None:
+                return value
+            return np.asarray(value).item()
+
+        return {f.name: plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    @classmethod
+    def from_dict(cls, fields: dict[str, Any]) -> AgentConfig:
+        """The config `to_dict` wrote (lists become tuples); unknown fields are refused."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(fields) - known)
+        if unknown:
+            raise ValueError(f"fields: {cls.__name__} has no field(s) {', '.join(unknown)}")
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+
     def static_key(self) -> tuple[Any, ...]:
         """Everything that needs its own compiled program (configs with equal keys share one)."""
         return (type(self).__name__, *(getattr(self, name) for name in self.static_fields()))

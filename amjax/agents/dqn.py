@@ -275,10 +275,10 @@ def update(config: DQNConfig, state: DQNState) -> tuple[DQNState, UpdateStats]:
     return new_state, UpdateStats(loss, EpisodeSums.of(transitions))
 
 
-def greedy(config: DQNConfig, state: DQNState):
+def greedy(config: DQNConfig, params: Any):
     env, env_params, _ = config.make_env()
     network = _network(config, env, env_params)
-    return greedy_policy(lambda obs: network.apply(state.params, obs))
+    return greedy_policy(lambda obs: network.apply(params, obs))
 
 
 DQN = Algorithm("dqn", DQNConfig, init, update, greedy, params=lambda state: state.params)

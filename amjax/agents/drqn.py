@@ -265,9 +265,9 @@ def update(config: DRQNConfig, state: DRQNState) -> tuple[DRQNState, UpdateStats
     return new_state, UpdateStats(jnp.where(learning, losses.mean(), 0.0), EpisodeSums.of(transitions))
 
 
-def greedy(config: DRQNConfig, state: DRQNState):
+def greedy(config: DRQNConfig, params: Any):
     """The greedy policy and a zero hidden state for `eval_episodes` test envs."""
-    act = _policy(config, state.params, jnp.float32(0.0))
+    act = _policy(config, params, jnp.float32(0.0))
 
     def greedy_act(batch: EnvBatch, carry: Any, key: jax.Array):
         action, carry, _ = act(batch, carry, key)

@@ -209,10 +209,10 @@ def update(config: PPOConfig, state: PPOState) -> tuple[PPOState, UpdateStats]:
     return new_state, UpdateStats(losses.mean(), EpisodeSums.of(transitions))
 
 
-def greedy(config: PPOConfig, state: PPOState):
+def greedy(config: PPOConfig, params: Any):
     env, env_params, _ = config.make_env()
     network = _network(config, env, env_params)
-    return greedy_policy(lambda obs: network.apply(state.params, obs)[0])
+    return greedy_policy(lambda obs: network.apply(params, obs)[0])
 
 
 PPO = Algorithm("ppo", PPOConfig, init, update, greedy, params=lambda state: state.params)

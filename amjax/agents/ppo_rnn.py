@@ -166,12 +166,12 @@ def update(config: PPORNNConfig, state: PPORNNState) -> tuple[PPORNNState, Updat
     return new_state, UpdateStats(losses.mean(), EpisodeSums.of(transitions))
 
 
-def greedy(config: PPORNNConfig, state: PPORNNState):
+def greedy(config: PPORNNConfig, params: Any):
     """The most probable action, carrying the hidden state; a zero hidden state for `eval_episodes` test envs."""
     net = network(config)
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        carry, (logits, _) = net.apply(state.params, carry, batch.obs, batch.first)
+        carry, (logits, _) = net.apply(params, carry, batch.obs, batch.first)
         return jnp.argmax(logits, -1), carry, None
 
     return act, zero_carry(config.cell, config.rnn_size, (config.eval_episodes,))

@@ -1,7 +1,7 @@
 """The training driver every algorithm shares: updates -> periodic greedy evaluation -> reduced metrics.
 
-An algorithm supplies `init(config, key)`, `update(config, state)` (one iteration: collect + learn) and
-`greedy(config, state)` (its evaluation policy). The driver scans `updates_per_eval` updates, evaluates
+An algorithm supplies `init(config, key)`, `update(config, state)` (one iteration: collect + learn),
+`params(state)` (its network parameters) and `greedy(config, params)` (its evaluation policy). The driver scans `updates_per_eval` updates, evaluates
 `eval_episodes` test episodes, and emits one small `EvalRow` per evaluation: memory grows with the number of
 evaluations, never with the number of environment steps. A configuration whose loss or parameters stop being finite
 is marked diverged and keeps that mark; it shares nothing with its neighbours in a vmapped sweep.
@@ -91,19 +91,23 @@ class RunState:
     evals_done: jax.Array
     best_return: jax.Array  # best greedy test costed return so far (the paper's metric)
     best_measured_fraction: jax.Array  # measured fraction of steps at that best evaluation
+    best_params: Any  # network parameters of that best evaluation (the policy a sweep saves)
     diverged: jax.Array
 
 
 @dataclass(frozen=True)
 class Algorithm:
-    """An algorithm as three pure functions plus its config type and network-parameter accessor."""
+    """An algorithm as pure functions plus its config type.
+
+    `greedy` takes network parameters (not the whole state), so a saved policy needs only its config and them.
+    """
 
     name: str
     config_type: type[AgentConfig]
-    init: Callable[[AgentConfig, jax.Array], Any]
-    update: Callable[[AgentConfig, Any], tuple[Any, UpdateStats]]
-    greedy: Callable[[AgentConfig, Any], Policy]
-    params: Callable[[Any], Any]
+    init: Callable[[AgentConfig, jax.Array], Any]  # (config, key) -> algorithm state
+    update: Callable[[AgentConfig, Any], tuple[Any, UpdateStats]]  # (config, state) -> (state, stats)
+    greedy: Callable[[AgentConfig, Any], Policy]  # (config, params) -> evaluation policy
+    params: Callable[[Any], Any]  # state -> network parameters
 
 
 def evaluate(
@@ -144,12 +148,14 @@ def _all_finite(tree: Any) -> jax.Array:
 def init_run(algo: Algorithm, config: AgentConfig, key: jax.Array) -> RunState:
     """The initial `RunState` of one configuration."""
     algo_key, eval_key = jax.random.split(key)
+    algo_state = algo.init(config, algo_key)
     return RunState(
-        algo=algo.init(config, algo_key),
+        algo=algo_state,
         key=eval_key,
         evals_done=jnp.int32(0),
         best_return=jnp.float32(-jnp.inf),
         best_measured_fraction=jnp.float32(jnp.nan),
+        best_params=algo.params(algo_state),
         diverged=jnp.bool_(False),
     )
 
@@ -166,15 +172,16 @@ def run_evals(
         )
         train = jax.tree.map(lambda x: x.sum(0), stats.episodes).means()
         loss = stats.loss.mean()
+        params = algo.params(algo_state)
         test = evaluate(
             env,
             env_params,
             max_steps,
-            algo.greedy(config, algo_state),
+            algo.greedy(config, params),
             jax.random.fold_in(state.key, state.evals_done),
             config.eval_episodes,
         ).means()
-        diverged = state.diverged | ~jnp.isfinite(loss) | ~_all_finite(algo.params(algo_state))
+        diverged = state.diverged | ~jnp.isfinite(loss) | ~_all_finite(params)
         improved = (test["costed_return"] > state.best_return) & ~diverged
         evals_done = state.evals_done + 1
         row = EvalRow(
@@ -198,6 +205,7 @@ def run_evals(
             best_measured_fraction=jnp.where(
                 improved, test["measurements"] / test["length"], state.best_measured_fraction
             ),
+            best_params=jax.tree.map(partial(jnp.where, improved), params, state.best_params),
             diverged=diverged,
         )
         return state, row

@@ -2,7 +2,7 @@
 
 `record_measurements` runs any `Policy` in any amjax environment for N episodes in parallel, as one jitted
 `lax.scan`, and records per step whether it measured and whether the episode was still running;
-`record_agent` does the same for a trained agent (its config and algorithm state); `plot_measurement_map` draws
+`record_agent` does the same for a trained agent (its config and network parameters); `plot_measurement_map` draws
 the grid episodes x time steps coloured measured / not measured / episode over.
 
 Randomness, so that a hand-written loop can reproduce a map: `reset_key, run_key = split(key)`; episode i starts
@@ -125,28 +125,29 @@ def record_measurements(
 
 @partial(jax.jit, static_argnames=("algo_name", "num_episodes"))
 def _record_agent(
-    algo_name: str, config: AgentConfig, algo_state: Any, key: jax.Array, num_episodes: int
+    algo_name: str, config: AgentConfig, params: Any, key: jax.Array, num_episodes: int
 ) -> dict[str, jax.Array]:
     from amjax.agents import ALGORITHMS
 
     env, env_params, max_steps = config.make_env()
     # Recurrent agents size their initial carry by eval_episodes.
-    act, carry = ALGORITHMS[algo_name].greedy(config.replace(eval_episodes=num_episodes), algo_state)
+    act, carry = ALGORITHMS[algo_name].greedy(config.replace(eval_episodes=num_episodes), params)
     return _scan(env, act, num_episodes, max_steps, env_params, carry, key)
 
 
-def record_agent(config: AgentConfig, algo_state: Any, key: jax.Array, num_episodes: int = 10) -> MeasurementMap:
+def record_agent(config: AgentConfig, params: Any, key: jax.Array, num_episodes: int = 10) -> MeasurementMap:
     """The measurement map of a trained agent's greedy policy on its own env (`config.make_env()`).
 
-    `algo_state` is the algorithm state, e.g. `RunState.algo` from `ppo.train(config, key)`. Configs that differ
-    only in traced fields (the cost among them) share one compiled program.
+    `params` are the agent's network parameters: `RunState.best_params` (the best evaluation's policy) or
+    `RunState.algo.params` (the last) from `ppo.train(config, key)`, or a loaded `SavedPolicy.params`. Configs
+    that differ only in traced fields (the cost among them) share one compiled program.
     """
     from amjax.agents import ALGORITHMS
 
     names = [name for name, algo in ALGORITHMS.items() if type(config) is algo.config_type]
     if not names:
         raise TypeError(f"config: no registered algorithm uses {type(config).__name__}")
-    return _to_map(_record_agent(names[0], config, algo_state, key, int(num_episodes)))
+    return _to_map(_record_agent(names[0], config, params, key, int(num_episodes)))
 
 
 def plot_measurement_map(

@@ -1,6 +1,16 @@
 """Sweeps: grids of configurations trained in compiled vmapped batches, with results, summaries and resume."""
 
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
-from amjax.sweep.runner import SweepMismatchError, SweepResult, run_sweep
+from amjax.sweep.runner import SweepMismatchError, SweepResult, load_sweep_policy, policy_path, run_sweep
 
-__all__ = ["RunConfig", "SweepMismatchError", "SweepResult", "SweepSpec", "expand", "group_runs", "run_sweep"]
+__all__ = [
+    "RunConfig",
+    "SweepMismatchError",
+    "SweepResult",
+    "SweepSpec",
+    "expand",
+    "group_runs",
+    "load_sweep_policy",
+    "policy_path",
+    "run_sweep",
+]

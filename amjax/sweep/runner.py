@@ -8,7 +8,6 @@ last checkpoint (training is deterministic), and rows are keyed by (config_id, e
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import math
@@ -25,6 +24,7 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from amjax.agents import ALGORITHMS, Algorithm, EvalRow, init_run, run_evals, stack_configs
+from amjax.agents.saved import SavedPolicy, load_policy, save_policy
 from amjax.sweep import storage
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 
@@ -112,9 +112,41 @@ def _rows(batch: _Batch, rows: EvalRow, hyper_columns: list[str]) -> pd.DataFram
 def _group_configs(runs: Sequence[RunConfig]) -> list[dict[str, Any]]:
     """Every field of one configuration per compiled group (traced fields as in its first configuration)."""
     return [
-        {"agent": group[0].agent, **dataclasses.asdict(group[0].config)}
+        {"agent": group[0].agent, **group[0].config.to_dict()}
         for group in group_runs(runs)
     ]
+
+
+def policy_path(out: str | Path, config_id: str) -> Path:
+    """Where a sweep keeps the best policy of configuration `config_id`."""
+    return Path(out) / "policies" / f"{config_id}.msgpack"
+
+
+def load_sweep_policy(out: str | Path, config_id: str) -> SavedPolicy:
+    """The best policy a sweep in `out` saved for `config_id` (see its results' config_id column)."""
+    path = policy_path(out, config_id)
+    if not path.exists():
+        saved = sorted(p.stem for p in (Path(out) / "policies").glob("*.msgpack"))
+        raise FileNotFoundError(
+            f"config_id: no saved policy {config_id!r} in {out}; saved: {', '.join(saved[:10]) or 'none'}"
+            + (" ..." if len(saved) > 10 else "")
+        )
+    return load_policy(path)
+
+
+def _save_policies(out: Path, batch: _Batch, states: Any, evals_done: int) -> None:
+    """Write each real configuration's best policy so far (parameters of its best evaluation)."""
+    best_params, best_return, best_fraction = jax.device_get(
+        (states.best_params, states.best_return, states.best_measured_fraction)
+    )
+    for i, run in enumerate(batch.runs):
+        info = {
+            "config_id": run.config_id, "env": run.env, "agent": run.agent, "vanilla": run.vanilla,
+            "cost": run.cost, "seed": run.seed, "best_return": float(best_return[i]),
+            "best_measured_fraction": float(best_fraction[i]),
+            "trained_env_steps": evals_done * run.config.eval_every,
+        }
+        save_policy(policy_path(out, run.config_id), run.config, jax.tree.map(lambda x: x[i], best_params), info)
 
 
 def _cell(value: Any) -> Any:
@@ -130,6 +162,7 @@ def run_sweep(
     checkpoint_every_s: float = 60.0,
     progress: bool = True,
     on_chunk: Callable[[pd.DataFrame], None] | None = None,
+    save_policies: bool = True,
 ) -> SweepResult:
     """Train every configuration of `spec`, writing results under `out`; resumes a sweep already there.
 
@@ -141,6 +174,8 @@ def run_sweep(
       checkpoint_every_s: train states are checkpointed after a chunk when this many seconds have passed
         since the last checkpoint (and always at the end of a batch).
       on_chunk: called with the full results table after every chunk (e.g. to draw live plots).
+      save_policies: keep each configuration's best policy in `out/policies/<config_id>.msgpack` (written with
+        every checkpoint; load one with `load_sweep_policy(out, config_id)`).
     """
     runs = expand(spec)  # validates everything before touching the disk
     out = Path(out)
@@ -187,6 +222,8 @@ def run_sweep(
             results = storage.merge_rows(results, _rows(batch, rows, hyper_columns))
             storage.write_table(out / "results", results)
             if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
+                if save_policies:
+                    _save_policies(out, batch, states, evals_done)
                 storage.save_checkpoint(ckpt_path, states, evals_done)
                 last_checkpoint = time.monotonic()
             steps = len(batch.runs) * chunk_evals * config0.eval_every

@@ -5,6 +5,7 @@ Layout of an output folder:
   results.parquet/.csv one row per configuration x evaluation point
   summary.parquet/.csv one row per configuration: best costed reward, final values, measurement reduction
   checkpoints/*.msgpack  train states of each compiled batch (for resuming), no pickle
+  policies/<config_id>.msgpack  the best policy of each configuration (`amjax.load_policy`)
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import json
 import os
 import platform
 import subprocess
-import tempfile
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
@@ -24,20 +24,9 @@ import numpy as np
 import pandas as pd
 from flax import serialization
 
+from amjax.files import atomic_write
+
 KEY_COLUMNS = ["config_id", "env_steps"]
-
-
-def atomic_write(path: Path, write: Callable[[str], None]) -> None:
-    """Call `write(tmp_path)` then rename over `path`: readers see the old file or the new one, never half."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_json(path: Path, data: Any) -> None:

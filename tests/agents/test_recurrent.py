@@ -152,7 +152,7 @@ def test_hidden_state_resets_at_episode_starts_when_acting(name):
     module, config = {"drqn": (drqn, PROBE_CONFIGS["drqn"]), "ppo-rnn": (ppo_rnn, PROBE_CONFIGS["ppo-rnn"])}[name]
     config = config.replace(eval_episodes=2)
     state = module.init(config, jax.random.PRNGKey(0))
-    act, carry = module.greedy(config, state)
+    act, carry = module.greedy(config, state.params)
     carries = _act_through(jax.jit(act), carry)
     # A fresh pair of envs playing only the second episode, from the policy's zero state.
     fresh = []

@@ -274,11 +274,11 @@ def test_record_measurements_matches_hand_loop(pattern):
 
 def test_record_agent_and_plot(tmp_path):
     config = ppo.PPOConfig(env_id="CartPole-v0", cost=0.2, num_envs=4, num_steps=32, hidden=(16,))
-    algo_state = ppo.init(config, jax.random.key(0))  # an untrained policy is enough to test the plumbing
+    params = ppo.init(config, jax.random.key(0)).params  # an untrained policy is enough to test the plumbing
     key = jax.random.key(1)
-    mmap = analysis.record_agent(config, algo_state, key, num_episodes=4)
+    mmap = analysis.record_agent(config, params, key, num_episodes=4)
     env, env_params, max_steps = config.make_env()
-    by_policy = analysis.record_measurements(env, env_params, ppo.greedy(config, algo_state), key, 4)
+    by_policy = analysis.record_measurements(env, env_params, ppo.greedy(config, params), key, 4)
     assert mmap.measured.shape == (4, max_steps) == (4, 200)
     np.testing.assert_array_equal(mmap.measured, by_policy.measured)
     np.testing.assert_array_equal(mmap.active, by_policy.active)
@@ -298,7 +298,9 @@ def test_record_agent_sizes_a_recurrent_carry():
     algo = ALGORITHMS["drqn"]
     config = algo.config_type(env_id="CartPole-v0", cost=0.2)
     assert config.eval_episodes != 3  # the carry is resized to the recorded episodes
-    mmap = analysis.record_agent(config, algo.init(config, jax.random.key(0)), jax.random.key(1), num_episodes=3)
+    mmap = analysis.record_agent(
+        config, algo.params(algo.init(config, jax.random.key(0))), jax.random.key(1), num_episodes=3
+    )
     assert mmap.measured.shape == (3, 200) and mmap.active[:, 0].all()
 
 

@@ -1,0 +1,166 @@
+"""Saved policies: a trained agent's network parameters and the config that rebuilds its network, in one msgpack
+file. No pickle: loading a file someone sent you runs no code, and a corrupt or mismatched file is refused.
+
+A file is a msgpack map: `format` ("amjax-policy"), `version`, `agent` (a registered algorithm name), `config`
+(JSON of every config field), `params` (the network's parameter tree as arrays) and `info` (JSON: e.g. the sweep's
+config_id, best costed return and the env step it was reached at). A sweep writes one per configuration under
+`policies/<config_id>.msgpack` (its best evaluation's policy); `save_policy` writes one from any params.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+from amjax.agents.config import AgentConfig
+from amjax.agents.rollout import EnvBatch
+from amjax.agents.training import Policy, evaluate
+from amjax.files import atomic_write
+
+FORMAT = "amjax-policy"
+VERSION = 1
+
+
+class PolicyFileError(ValueError):
+    """A policy file that cannot be read, or whose contents do not fit the network its config describes."""
+
+
+def _algorithm(agent: str):
+    from amjax.agents import ALGORITHMS  # the registry imports this module's siblings
+
+    if agent not in ALGORITHMS:
+        raise ValueError(f"agent: unknown agent {agent!r}; allowed values: {', '.join(sorted(ALGORITHMS))}")
+    return ALGORITHMS[agent]
+
+
+def _agent_of(config: AgentConfig) -> str:
+    from amjax.agents import ALGORITHMS
+
+    for name, algo in ALGORITHMS.items():
+        if type(config) is algo.config_type:
+            return name
+    raise TypeError(f"config: no registered algorithm uses {type(config).__name__}")
+
+
+def params_template(agent: str, config: AgentConfig) -> Any:
+    """Shapes and dtypes of the network parameters `config` builds (no arrays are allocated)."""
+    algo = _algorithm(agent)
+    return jax.eval_shape(lambda key: algo.params(algo.init(config, key)), jax.random.key(0))
+
+
+@dataclass(frozen=True)
+class SavedPolicy:
+    """A trained agent's greedy policy: `agent` name, its `config` and network `params` (+ free-form `info`)."""
+
+    agent: str
+    config: AgentConfig
+    params: Any
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def policy(self, num_envs: int = 1) -> Policy:
+        """The greedy `(act, carry)` for a batch of `num_envs` envs (recurrent carries are sized to it)."""
+        config = self.config.replace(eval_episodes=int(num_envs))
+        return _algorithm(self.agent).greedy(config, self.params)
+
+    def evaluate(self, key: jax.Array, num_episodes: int = 10, **changes: Any) -> dict[str, float]:
+        """Mean costed return, raw return, length and measurements over `num_episodes` greedy test episodes on
+        the config's env; `changes` edit the config first (e.g. `cost=0.3` to score it at another cost)."""
+        config = self.config.replace(**changes).validate() if changes else self.config
+        sums = _evaluate(self.agent, config, self.params, key, int(num_episodes))
+        return {name: float(value) for name, value in sums.means().items()}
+
+    def actor(self) -> Actor:
+        """A stateful one-env actor for NumPy loops (e.g. a Gymnasium env from `amjax.wrappers.gymnasium`)."""
+        return Actor(self)
+
+
+@partial(jax.jit, static_argnames=("agent", "num_episodes"))
+def _evaluate(agent: str, config: AgentConfig, params: Any, key: jax.Array, num_episodes: int):
+    env, env_params, max_steps = config.make_env()
+    greedy = _algorithm(agent).greedy(config.replace(eval_episodes=num_episodes), params)
+    return evaluate(env, env_params, max_steps, greedy, key, num_episodes)
+
+
+class Actor:
+    """`actor(obs) -> int action` for one env, step by step; `reset()` at each episode start (recurrent agents
+    start from a zero hidden state, as in training)."""
+
+    def __init__(self, saved: SavedPolicy):
+        act, self._initial = saved.policy(num_envs=1)
+
+        def step(obs, carry, first):
+            action, carry, _ = act(EnvBatch(obs[None], None, first[None]), carry, jax.random.key(0))
+            return action[0], carry
+
+        self._step = jax.jit(step)
+        self.reset()
+
+    def reset(self) -> None:
+        self._carry, self._first = self._initial, True
+
+    def __call__(self, obs: Any) -> int:
+        action, self._carry = self._step(jnp.asarray(obs, jnp.float32), self._carry, jnp.bool_(self._first))
+        self._first = False
+        return int(action)
+
+
+def save_policy(path: str | Path, config: AgentConfig, params: Any, info: dict[str, Any] | None = None) -> Path:
+    """Write `params` of the agent that `config` configures to `path` (atomically); returns the path."""
+    agent = _agent_of(config)
+    path = Path(path)
+    payload = {
+        "format": FORMAT,
+        "version": VERSION,
+        "agent": agent,
+        "config": json.dumps(config.to_dict()),
+        "params": serialization.to_state_dict(jax.tree.map(np.asarray, params)),
+        "info": json.dumps(info or {}, default=float),
+    }
+    data = serialization.msgpack_serialize(payload)
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
+    return path
+
+
+def load_policy(path: str | Path) -> SavedPolicy:
+    """Read a policy file; raise `PolicyFileError` (naming the file and the problem) if it is corrupt, from an
+    unknown format or version, or if its parameters do not fit the network its config builds."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no policy file at {path}")
+    try:
+        payload = serialization.msgpack_restore(path.read_bytes())
+        if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+            raise ValueError(f"not an {FORMAT} file")
+        if payload.get("version") != VERSION:
+            raise ValueError(f"version {payload.get('version')!r}; this amjax reads version {VERSION}")
+        agent = payload["agent"]
+        config = _algorithm(agent).config_type.from_dict(json.loads(payload["config"]))
+        info = json.loads(payload["info"])
+        stored = payload["params"]
+    except Exception as error:  # truncated bytes, wrong keys, bad JSON, unknown agent or field
+        raise PolicyFileError(f"{path}: unreadable policy file ({error})") from None
+    template = params_template(agent, config)
+    try:
+        params = serialization.from_state_dict(template, stored)
+    except (ValueError, KeyError, TypeError) as error:
+        raise PolicyFileError(f"{path}: parameters do not fit the {agent} network of its config ({error})") from None
+    for (where, want), got in zip(jax.tree_util.tree_leaves_with_path(template), jax.tree.leaves(params),
+                                  strict=True):
+        got = np.asarray(got)
+        if got.shape != want.shape or got.dtype != want.dtype:
+            raise PolicyFileError(
+                f"{path}: parameter {jax.tree_util.keystr(where)} has shape {got.shape} {got.dtype}, the {agent} "
+                f"network of its config needs {want.shape} {want.dtype}"
+            )
+    return SavedPolicy(agent, config, jax.tree.map(jnp.asarray, params), info)
+
+
+__all__ = ["Actor", "PolicyFileError", "SavedPolicy", "load_policy", "params_template", "save_policy"]
