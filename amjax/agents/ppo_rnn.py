@@ -14,14 +14,14 @@ episode starts) and takes a step on the clipped objective (`ppo.clipped_loss`).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
 
-from amjax.agents.config import AgentConfig, static
+from amjax.agents.config import static
 from amjax.agents.networks import CELLS, RecurrentActorCritic, unroll, zero_carry
 from amjax.agents.ppo import PPOConfig, clipped_loss, gae, make_optimizer
 from amjax.agents.rollout import EnvBatch, reset_envs, rollout
@@ -30,34 +30,25 @@ from amjax.validation import check_choice, check_positive_int
 
 
 @struct.dataclass
-class PPORNNConfig(AgentConfig):
-    num_envs: int = static(8)
-    num_steps: int = static(128)  # rollout length per env per update (the length of the trained sequences)
-    update_epochs: int = static(4)
-    num_minibatches: int = static(4)  # minibatches of whole env sequences: must divide num_envs
+class PPORNNConfig(PPOConfig):
+    """PPOConfig's fields (traced ones and their bounds included) plus the recurrent core's; `hidden` is the MLP
+    under the cell. The core is always shared by the policy and value heads (`shared_network` must be True)."""
+
     hidden: Sequence[int] = static((64,))  # MLP under the recurrent cell
+    shared_network: bool = static(True)  # one recurrent core for both heads (the only variant)
     rnn_size: int = static(64)
     cell: str = static("gru")  # "gru" or "lstm"
-    activation: str = static("tanh")
-    anneal_lr: bool = static(True)  # linear decay of the learning rate to 0 over training
-    learning_rate: float = 1e-3
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    clip_eps: float = 0.2
-    ent_coef: float = 0.01
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.5
-
-    TRACED_BOUNDS: ClassVar[dict[str, str]] = PPOConfig.TRACED_BOUNDS
-
-    def steps_per_update(self) -> int:
-        return self.num_envs * self.num_steps
 
     def validate(self) -> PPORNNConfig:
-        for name in ("num_envs", "num_steps", "update_epochs", "num_minibatches", "rnn_size"):
-            check_positive_int(name, getattr(self, name))
-        check_choice("activation", self.activation, ("tanh", "relu", "elu"))
+        check_positive_int("rnn_size", self.rnn_size)
         check_choice("cell", self.cell, CELLS)
+        if self.shared_network is not True:
+            raise ValueError(
+                f"shared_network={self.shared_network!r}: PPO-RNN's recurrent core is shared by the policy and value "
+                "heads; allowed values: True"
+            )
+        check_positive_int("num_envs", self.num_envs)
+        check_positive_int("num_minibatches", self.num_minibatches)
         if self.num_envs % self.num_minibatches:
             raise ValueError(
                 f"num_minibatches={self.num_minibatches} must divide num_envs={self.num_envs} "

@@ -79,6 +79,26 @@ def test_full_run_tables(full_run):
     assert len(full_run.table) == 4 and (full_run.table.seeds == 2).all()
 
 
+def test_best_policy_per_config_reproduces_its_best_score(full_run):
+    import jax
+
+    from amjax.sweep import load_sweep_policy
+
+    summary = full_run.summary
+    assert sorted(p.stem for p in (full_run.out / "policies").glob("*.msgpack")) == sorted(summary.config_id)
+    for row in summary.itertuples():
+        saved = load_sweep_policy(full_run.out, row.config_id)
+        assert saved.info["best_return"] == pytest.approx(row.best_return, rel=1e-6)
+        assert saved.config.cost == pytest.approx(row.cost) and saved.info["seed"] == row.seed
+        # The driver's key for the best evaluation: split(PRNGKey(seed))[1] folded with its index.
+        eval_key = jax.random.fold_in(jax.random.split(jax.random.PRNGKey(row.seed))[1],
+                                      int(row.best_env_steps) // TINY.eval_every - 1)
+        score = saved.evaluate(eval_key, TINY.eval_episodes)
+        assert score["costed_return"] == pytest.approx(row.best_return, rel=1e-4)
+    with pytest.raises(FileNotFoundError, match="config_id: no saved policy 'nope'"):
+        load_sweep_policy(full_run.out, "nope")
+
+
 @pytest.mark.parametrize("checkpoint_every_s", [0.0, 1e9])
 def test_resume_after_interrupt(tmp_path, full_run, checkpoint_every_s):
     """Interrupted after 2 of 4 chunks (with a checkpoint, or with results written past the last checkpoint),
