@@ -1,10 +1,10 @@
 """The training driver every algorithm shares: updates -> periodic greedy evaluation -> reduced metrics.
 
-An algorithm supplies `init(config, key)`, `update(config, state)` (one iteration: collect + learn),
-`params(state)` (its network parameters) and `greedy(config, params)` (its evaluation policy). The driver scans `updates_per_eval` updates, evaluates
-`eval_episodes` test episodes, and emits one small `EvalRow` per evaluation: memory grows with the number of
-evaluations, never with the number of environment steps. A configuration whose loss or parameters stop being finite
-is marked diverged and keeps that mark; it shares nothing with its neighbours in a vmapped sweep.
+An algorithm supplies `init(config, key)`, `update(config, state)` (one iteration: collect + learn), `params(state)`
+(its network parameters) and `greedy(config, params)` (its evaluation policy). The driver scans `updates_per_eval`
+updates, evaluates `eval_episodes` test episodes, and emits one small `EvalRow` per evaluation: memory grows with
+the number of evaluations, never with the number of environment steps. A configuration whose loss or parameters stop
+being finite is marked diverged and keeps that mark; it shares nothing with its neighbours in a vmapped sweep.
 """
 
 from __future__ import annotations

@@ -14,6 +14,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from amjax.analysis import plots
+from amjax.analysis.maps import plot_measurement_map, record_agent
 from amjax.analysis.results import SweepData, hyper_columns, load_results, sweep_progress
 from amjax.analysis.tables import paper_table, to_markdown
 
@@ -116,11 +117,51 @@ def _format_paper_table(table: pd.DataFrame) -> pd.DataFrame:
     return shown.dropna(axis=1, how="all")
 
 
-def write_report(path: str | Path, out: str | Path | None = None, *, formats: Sequence[str] = ("png",)) -> Path:
+def _map_lines(data: SweepData, path: Path, figure_dir: Path, formats: Sequence[str], episodes: int) -> list[str]:
+    """Measurement maps of the best saved policy per env x agent x cost (one figure per env x agent)."""
+    import jax
+
+    from amjax.sweep import load_sweep_policy, policy_path
+
+    costed = data.summary[~data.summary.vanilla.astype(bool) & data.summary.best_return.notna()]
+    costed = costed[[policy_path(path, c).exists() for c in costed.config_id]]
+    if costed.empty:
+        return ["_No saved policies in this sweep folder (sweeps write `policies/` since amjax 0.1; "
+                "`run_sweep(..., save_policies=False)` turns it off)._", ""]
+    lines = [f"The best saved policy (highest best test costed return over seeds) of each env x agent x cost, "
+             f"run greedily for {episodes} test episodes: a dark cell is a paid measurement, a light one a step "
+             "without one, grey is after the episode ended. Files: `policies/<config_id>.msgpack` "
+             "(`amjax.sweep.load_sweep_policy`).", ""]
+    for (env, agent), group in costed.groupby(["env", "agent"], sort=True):
+        panels, chosen = {}, []
+        for cost, runs in group.groupby("cost", sort=True):
+            best = runs.sort_values(["best_return", "seed"], ascending=[False, True]).iloc[0]
+            saved = load_sweep_policy(path, best.config_id)
+            chosen.append(f"cost {cost:g}: seed {best.seed}, `{best.config_id}`")
+            panels[f"cost {cost:g}, seed {best.seed}"] = record_agent(
+                saved.config, saved.params, jax.random.key(0), num_episodes=episodes
+            )
+        name = f"maps_{env}_{agent}".replace("/", "_")
+        plots.save_figure(plot_measurement_map(panels, title=f"{env}, {agent}"), figure_dir / f"{name}.{formats[0]}",
+                          formats[1:])
+        lines += [f"### {env}, {agent}", "", f"![{env} {agent} measurement maps](figures/{name}.{formats[0]})", "",
+                  "Policies: " + "; ".join(chosen) + ".", ""]
+    return lines
+
+
+def write_report(
+    path: str | Path,
+    out: str | Path | None = None,
+    *,
+    formats: Sequence[str] = ("png",),
+    maps: bool = True,
+    map_episodes: int = 10,
+) -> Path:
     """Write the report of the sweep folder `path` into `out` (default `path/report`); returns report.md's path.
 
-    `formats`: image formats of each figure ("png", "svg", ...); the report embeds the first. Raises
-    `NotASweepError` when `path` is not a sweep folder with results.
+    `formats`: image formats of each figure ("png", "svg", ...); the report embeds the first. `maps`: draw the
+    measurement maps of the sweep's saved best policies (`map_episodes` test episodes each; runs them, so it
+    compiles one program per agent). Raises `NotASweepError` when `path` is not a sweep folder with results.
     """
     data = load_results(path)
     out = Path(path) / "report" if out is None else Path(out)
@@ -149,9 +190,11 @@ def write_report(path: str | Path, out: str | Path | None = None, *, formats: Se
         plots.save_figure(fig, figure_dir / f"{name}.{formats[0]}", formats[1:])
         lines += [f"![{heading}](figures/{name}.{formats[0]})", "", caption, ""]
 
-    lines += ["## Measurement maps", "",
-              "A sweep folder stores results, not policies: draw maps of trained policies with "
-              "`amjax.analysis.record_agent` and `plot_measurement_map` (see notebooks/quickstart.ipynb).", ""]
+    lines += ["## Measurement maps", ""]
+    if maps:
+        lines += _map_lines(data, Path(path), figure_dir, formats, int(map_episodes))
+    else:
+        lines += ["_Not drawn (maps=False / --no-maps)._", ""]
     configs = data.summary.sort_values(["env", "agent", "vanilla", "cost", "seed"])[
         ["env", "agent", "vanilla", "cost", "seed", *hyper_columns(data.summary), "best_return",
          "best_measured_fraction", "best_env_steps", "final_return", "diverged"]

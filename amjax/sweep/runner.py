@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import operator
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -146,7 +147,8 @@ def _save_policies(out: Path, batch: _Batch, states: Any, evals_done: int) -> No
             "best_measured_fraction": float(best_fraction[i]),
             "trained_env_steps": evals_done * run.config.eval_every,
         }
-        save_policy(policy_path(out, run.config_id), run.config, jax.tree.map(lambda x: x[i], best_params), info)
+        params = jax.tree.map(operator.itemgetter(i), best_params)
+        save_policy(policy_path(out, run.config_id), run.config, params, info)
 
 
 def _cell(value: Any) -> Any:

@@ -326,6 +326,10 @@ def test_write_report(sweep_dir, tmp_path):
         _nonempty_image(report.parent / "figures" / f"{name}.png")
         _nonempty_image(report.parent / "figures" / f"{name}.svg")
     assert len(pd.read_csv(report.parent / "paper_table.csv")) == 3
+    # Measurement maps of the saved best policies: one figure per env x agent, one panel per cost.
+    assert "figures/maps_CartPole-v0_ppo.png" in text and "cost 0.2: seed" in text
+    _nonempty_image(report.parent / "figures" / "maps_CartPole-v0_ppo.png")
+    assert "Not drawn (maps=False" in analysis.write_report(sweep_dir, tmp_path / "nomaps", maps=False).read_text()
 
 
 def test_report_on_partial_sweep(sweep_dir, tmp_path):
@@ -339,6 +343,7 @@ def test_report_on_partial_sweep(sweep_dir, tmp_path):
     assert report == partial / "report" / "report.md"
     assert "partial" in text and "1 of 6 configurations" in text and "2 of 24 evaluation points" in text
     assert "Not drawn: vanilla_vs_cost0" in text
+    assert "No saved policies in this sweep folder" in text  # the copy holds results only
     _nonempty_image(partial / "report" / "figures" / "learning_curves.png")
 
 
