@@ -1,4 +1,4 @@
-"""Command line: `python -m train sweep ...`, `python -m train demo`, `python -m train presets`.
+"""Command line: `python -m train sweep ...`, `demo`, `presets`, `report` and `replicate`.
 
 Bad flags exit with status 2 and a message before anything is written or compiled.
 """
@@ -18,7 +18,7 @@ from amjax.agents import ALGORITHMS
 from amjax.envs.registry import registered_envs
 from amjax.sweep import SweepMismatchError, SweepSpec, run_sweep
 from amjax.sweep.grid import expand
-from train import report
+from train import replicate, report
 from train.presets import PRESETS
 
 
@@ -97,6 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     commands.add_parser("presets", help="list the named sweeps")
     report.add_parser(commands)
+    replicate.add_parser(commands)
     return parser
 
 
@@ -166,6 +167,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "report":
         return report.run(args)
+    if args.command == "replicate":
+        return replicate.run(args, parser.error)
     if args.command == "presets":
         for name, spec in PRESETS.items():
             runs = len(expand(spec))

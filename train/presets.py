@@ -1,6 +1,9 @@
-"""Named sweeps. `demo` is the README's quick start; `paper` is the grid of Bellinger et al. (2022)."""
+"""Named sweeps. `demo` is the README's quick start; `paper` is the grid of Bellinger et al. (2022);
+`replicate_specs` is the whole replication (`python -m train replicate`): one sweep per environment."""
 
 from __future__ import annotations
+
+import dataclasses
 
 from amjax.sweep import SweepSpec
 
@@ -25,3 +28,41 @@ PRESETS: dict[str, SweepSpec] = {
         vanilla=True,
     ),
 }
+
+# The replication grid: the paper's three environments x costs 0-0.3 plus vanilla x its three agents x 10 seeds.
+# Budgets are per environment (env steps per configuration, steps between evaluations): each environment is its
+# own sweep, in its own folder. Every budget is a multiple of every agent's env steps per update (PPO 1,024,
+# DQN 4, DRQN 32) so all agents share the evaluation points.
+REPLICATE_AGENTS = ("dqn", "ppo", "drqn")
+REPLICATE_BUDGETS: dict[str, tuple[int, int]] = {
+    "CartPole-v0": (491_520, 20_480),
+    "Acrobot-v1": (491_520, 20_480),
+    "LunarLander-v3": (983_040, 40_960),
+}
+# A smoke version of the same grid (2 seeds, 1/12 to 1/24 of the budget) for trying the command end to end.
+QUICK_BUDGETS: dict[str, tuple[int, int]] = {env: (40_960, 10_240) for env in REPLICATE_BUDGETS}
+# Per-environment hyperparameters on top of each agent's defaults (none needed so far).
+REPLICATE_HYPERPARAMS: dict[str, dict] = {}
+
+
+def replicate_specs(
+    envs: tuple[str, ...] = tuple(REPLICATE_BUDGETS),
+    agents: tuple[str, ...] = REPLICATE_AGENTS,
+    seeds: int = 10,
+    quick: bool = False,
+) -> dict[str, SweepSpec]:
+    """One sweep per environment of the replication grid (`quick`: the smoke budgets)."""
+    budgets = QUICK_BUDGETS if quick else REPLICATE_BUDGETS
+    unknown = [env for env in envs if env not in budgets]
+    if unknown:
+        raise ValueError(f"--env: no replication budget for {', '.join(unknown)}; allowed values: "
+                         f"{', '.join(budgets)}")
+    base = SweepSpec(costs=(0.0, 0.1, 0.2, 0.3), vanilla=True)
+    return {
+        env: dataclasses.replace(
+            base, envs=(env,), agents=tuple(agents), seeds=tuple(range(seeds)),
+            total_timesteps=budgets[env][0], eval_every=budgets[env][1],
+            hyperparams=dict(REPLICATE_HYPERPARAMS.get(env, {})),
+        )
+        for env in envs
+    }

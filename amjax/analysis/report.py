@@ -109,7 +109,8 @@ def _spec_lines(data: SweepData) -> list[str]:
     return lines
 
 
-def _format_paper_table(table: pd.DataFrame) -> pd.DataFrame:
+def format_paper_table(table: pd.DataFrame) -> pd.DataFrame:
+    """The paper table (`tables.paper_table`) with readable column names and a setting column."""
     shown = table.copy()
     shown.insert(2, "setting", ["vanilla" if v else f"cost {c:g}" for v, c in zip(shown.vanilla, shown.cost,
                                                                                   strict=True)])
@@ -177,7 +178,7 @@ def write_report(
               "always-measure bound from this sweep's data and the gain over it, and the paper's numbers "
               "(Bellinger et al., Canadian AI 2022) where it gives them.", ""]
     table = paper_table(data.summary, data.results)
-    lines += [to_markdown(_format_paper_table(table)), ""]
+    lines += [to_markdown(format_paper_table(table)), ""]
     table.to_csv(out / "paper_table.csv", index=False)
 
     for name, heading, caption in _FIGURES:

@@ -1,0 +1,58 @@
+"""`python -m train replicate`: one resumable sweep per environment, reports, an index with wall times."""
+
+from __future__ import annotations
+
+import json
+
+import pandas as pd
+import pytest
+
+from train import presets
+from train.cli import main
+
+
+def test_replication_grid_is_the_papers():
+    specs = presets.replicate_specs()
+    assert list(specs) == ["CartPole-v0", "Acrobot-v1", "LunarLander-v3"]
+    for env, spec in specs.items():
+        assert spec.envs == (env,) and spec.agents == ("dqn", "ppo", "drqn") and spec.vanilla
+        assert spec.costs == (0.0, 0.1, 0.2, 0.3) and spec.seeds == tuple(range(10))
+    from amjax.sweep.grid import expand
+
+    assert sum(len(expand(spec)) for spec in specs.values()) == 3 * 5 * 3 * 10
+
+
+def test_replicate_runs_reports_and_resumes(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(presets.QUICK_BUDGETS, "CartPole-v0", (2048, 1024))
+    args = ["replicate", "--quick", "--env", "CartPole-v0", "--agent", "ppo", "--seeds", "1", "--out",
+            str(tmp_path), "--no-progress"]
+    assert main(args) == 0
+    index = (tmp_path / "report.md").read_text()
+    assert "## CartPole-v0" in index and "| CartPole-v0 | ppo | vanilla |" in index
+    assert (tmp_path / "CartPole-v0" / "report" / "report.md").exists()
+    assert (tmp_path / "CartPole-v0" / "report" / "figures" / "maps_CartPole-v0_ppo.png").exists()
+    table = pd.read_csv(tmp_path / "paper_table.csv")
+    assert len(table) == 5  # vanilla + 4 costs
+    first = json.loads((tmp_path / "wall_times.json").read_text())["CartPole-v0"]
+    results = pd.read_parquet(tmp_path / "CartPole-v0" / "results.parquet")
+    assert len(results) == 5 * 2  # configurations x evaluations
+    # A rerun finds everything done: no new rows, the wall time only grows.
+    assert main(args) == 0
+    pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "CartPole-v0" / "results.parquet"), results)
+    assert json.loads((tmp_path / "wall_times.json").read_text())["CartPole-v0"] >= first
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--env", "Pong-v0"], "--env: no replication budget for Pong-v0"),
+        (["--seeds", "0"], "--seeds: got 0"),
+        (["--agent", "sarsa"], "sarsa"),
+        (["--max-batch", "0"], "--max-batch: got 0"),
+    ],
+)
+def test_bad_flags_exit_2_without_output(tmp_path, capsys, flags, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["replicate", "--out", str(tmp_path / "out"), *flags])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

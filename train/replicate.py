@@ -1,0 +1,101 @@
+"""`python -m train replicate`: the paper's whole grid, then its report.
+
+CartPole-v0, Acrobot-v1 and LunarLander-v3 x costs 0, 0.1, 0.2, 0.3 plus vanilla x Dueling DQN, PPO and DRQN x 10
+seeds: one sweep per environment in `OUT/<env>/` (each resumable: rerun the same command after an interruption),
+each with its report in `OUT/<env>/report/`, and `OUT/report.md` joining their tables with wall times.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from train.presets import REPLICATE_AGENTS, REPLICATE_BUDGETS, replicate_specs
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    parser = subparsers.add_parser(
+        "replicate", help="run the paper's grid (3 envs x 5 settings x 3 agents x 10 seeds) and write its report",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--out", default="runs/replicate", help="output folder (rerun to resume)")
+    parser.add_argument("--env", nargs="+", default=list(REPLICATE_BUDGETS), metavar="ENV",
+                        help=f"a subset of {', '.join(REPLICATE_BUDGETS)}")
+    parser.add_argument("--agent", nargs="+", default=list(REPLICATE_AGENTS), metavar="AGENT",
+                        help=f"a subset of the agents (default: {', '.join(REPLICATE_AGENTS)})")
+    parser.add_argument("--seeds", type=int, help="seeds per setting (default: 10; 2 with --quick)")
+    parser.add_argument("--quick", action="store_true",
+                        help="a smoke run of the same grid: 40,960 steps per configuration (default 2 seeds)")
+    parser.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument("--no-maps", action="store_true", help="skip the reports' measurement maps")
+    return parser
+
+
+def _index(out: Path, timings: dict[str, float], reports: dict[str, Path]) -> Path:
+    """OUT/report.md: every environment's results table and wall time, with links to the full reports."""
+    from amjax.analysis.report import format_paper_table
+    from amjax.analysis.tables import to_markdown
+
+    lines = ["# Replication report", "",
+             "Bellinger et al. (Canadian AI 2022), replicated with amjax: per environment, the median over seeds of "
+             "the best test costed return and the measured fraction at that evaluation; the full reports (figures, "
+             "measurement maps, per-configuration tables) are linked below.", ""]
+    tables = []
+    for env, report in reports.items():
+        table = pd.read_csv(report.parent / "paper_table.csv")
+        tables.append(table)
+        link = report.relative_to(out)
+        lines += [f"## {env}", "", f"Report: [{link}]({link}); wall time (all invocations together): "
+                  f"{timings[env] / 60:.1f} min.", "", to_markdown(format_paper_table(table)), ""]
+    if tables:
+        pd.concat(tables, ignore_index=True).to_csv(out / "paper_table.csv", index=False)
+    path = out / "report.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def run(args: argparse.Namespace, error: Any) -> int:
+    """Run the replication `args` describe; `error(message)` reports bad flags (exits 2)."""
+    from amjax.analysis import write_report
+    from amjax.files import atomic_write
+    from amjax.sweep import SweepMismatchError, run_sweep
+    from amjax.sweep.grid import expand
+
+    seeds = (2 if args.quick else 10) if args.seeds is None else args.seeds
+    try:
+        if seeds < 1:
+            raise ValueError(f"--seeds: got {seeds}; allowed values: integers >= 1")
+        if args.max_batch < 1:
+            raise ValueError(f"--max-batch: got {args.max_batch}; allowed values: integers >= 1")
+        specs = replicate_specs(tuple(args.env), tuple(args.agent), seeds, args.quick)
+        for spec in specs.values():
+            expand(spec)  # every check before anything is written
+    except (ValueError, TypeError) as problem:
+        error(str(problem))
+    out = Path(args.out)
+    timings: dict[str, float] = {}
+    reports: dict[str, Path] = {}
+    timing_path = out / "wall_times.json"
+    for env, spec in specs.items():
+        start = time.monotonic()
+        try:
+            run_sweep(spec, out / env, max_batch=args.max_batch, progress=not args.no_progress)
+        except SweepMismatchError as problem:
+            print(f"python -m train replicate: error: {problem}", file=sys.stderr)
+            return 2
+        elapsed = time.monotonic() - start
+        stored = json.loads(timing_path.read_text()) if timing_path.exists() else {}
+        timings = {**stored, env: round(stored.get(env, 0.0) + elapsed, 1)}  # summed over resumed invocations
+        atomic_write(timing_path, lambda tmp, t=timings: Path(tmp).write_text(json.dumps(t, indent=2) + "\n"))
+        reports[env] = write_report(out / env, maps=not args.no_maps)
+        print(f"{env}: {elapsed / 60:.1f} min; report {reports[env]}")
+    index = _index(out, timings, reports)
+    print(f"\nReplication report: {index}")
+    return 0
