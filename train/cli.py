@@ -58,6 +58,30 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
     return hyperparams
 
 
+def add_logging_arguments(parser: argparse.ArgumentParser) -> None:
+    """--tensorboard / --wandb flags (optional per-configuration logging; local files are always written)."""
+    parser.add_argument("--tensorboard", action="store_true",
+                        help="also log every configuration to TensorBoard (OUT/tensorboard/<config_id>)")
+    parser.add_argument("--wandb", metavar="PROJECT",
+                        help="also log every configuration to Weights & Biases project PROJECT")
+    parser.add_argument("--wandb-mode", choices=("offline", "online"), default="offline",
+                        help="offline needs no network (upload later with `wandb sync OUT/wandb/offline-run-*`)")
+
+
+def make_loggers(args: argparse.Namespace, out: str) -> list[Any]:
+    """The loggers the flags ask for; ImportError (with the pip command) when a package is missing."""
+    from pathlib import Path
+
+    from amjax.sweep.loggers import TensorBoardLogger, WandbLogger
+
+    loggers: list[Any] = []
+    if getattr(args, "tensorboard", False):
+        loggers.append(TensorBoardLogger(Path(out) / "tensorboard"))
+    if getattr(args, "wandb", None):
+        loggers.append(WandbLogger(args.wandb, out, mode=args.wandb_mode))
+    return loggers
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m train",
@@ -90,6 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--out", required=True, help="output folder (rerun with the same folder to resume)")
     sweep.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
     sweep.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_logging_arguments(sweep)
 
     demo = commands.add_parser("demo", help="the quick-start sweep (a few minutes on 2 cores)")
     demo.add_argument("--out", default="runs/demo", help="output folder")
@@ -182,10 +207,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             if max_batch < 1:
                 raise ValueError(f"--max-batch: got {max_batch}; allowed values: integers >= 1")
         expand(spec)  # every check, before anything is written
-    except (ValueError, TypeError) as error:
+        loggers = make_loggers(args, args.out)
+    except (ValueError, TypeError, ImportError) as error:
         parser.error(str(error))  # exits with status 2
     try:
-        result = run_sweep(spec, args.out, max_batch=max_batch, progress=not args.no_progress)
+        result = run_sweep(spec, args.out, max_batch=max_batch, progress=not args.no_progress, loggers=loggers)
     except SweepMismatchError as error:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return 2

@@ -35,6 +35,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--no-maps", action="store_true", help="skip the reports' measurement maps")
+    from train.cli import add_logging_arguments
+
+    add_logging_arguments(parser)
     return parser
 
 
@@ -77,7 +80,10 @@ def run(args: argparse.Namespace, error: Any) -> int:
         specs = replicate_specs(tuple(args.env), tuple(args.agent), seeds, args.quick)
         for spec in specs.values():
             expand(spec)  # every check before anything is written
-    except (ValueError, TypeError) as problem:
+        from train.cli import make_loggers
+
+        make_loggers(args, str(args.out))  # a missing package fails here, before anything is written
+    except (ValueError, TypeError, ImportError) as problem:
         error(str(problem))
     out = Path(args.out)
     timings: dict[str, float] = {}
@@ -86,7 +92,8 @@ def run(args: argparse.Namespace, error: Any) -> int:
     for env, spec in specs.items():
         start = time.monotonic()
         try:
-            run_sweep(spec, out / env, max_batch=args.max_batch, progress=not args.no_progress)
+            run_sweep(spec, out / env, max_batch=args.max_batch, progress=not args.no_progress,
+                      loggers=make_loggers(args, str(out / env)))
         except SweepMismatchError as problem:
             print(f"python -m train replicate: error: {problem}", file=sys.stderr)
             return 2

@@ -28,6 +28,7 @@ from amjax.agents import ALGORITHMS, Algorithm, EvalRow, init_run, run_evals, st
 from amjax.agents.saved import SavedPolicy, load_policy, save_policy
 from amjax.sweep import storage
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
+from amjax.sweep.loggers import RunLogger
 
 
 class SweepMismatchError(ValueError):
@@ -165,6 +166,7 @@ def run_sweep(
     progress: bool = True,
     on_chunk: Callable[[pd.DataFrame], None] | None = None,
     save_policies: bool = True,
+    loggers: Sequence[RunLogger] = (),
 ) -> SweepResult:
     """Train every configuration of `spec`, writing results under `out`; resumes a sweep already there.
 
@@ -178,6 +180,8 @@ def run_sweep(
       on_chunk: called with the full results table after every chunk (e.g. to draw live plots).
       save_policies: keep each configuration's best policy in `out/policies/<config_id>.msgpack` (written with
         every checkpoint; load one with `load_sweep_policy(out, config_id)`).
+      loggers: also send each chunk's new rows to these (e.g. `TensorBoardLogger(out / "tensorboard")`,
+        `WandbLogger(project, out)`); they are closed when the sweep ends or stops.
     """
     runs = expand(spec)  # validates everything before touching the disk
     out = Path(out)
@@ -199,45 +203,52 @@ def run_sweep(
     batches = _batches(runs, max_batch)
     total_steps = len(runs) * spec.total_timesteps
     bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
-    for batch in batches:
-        config0 = batch.runs[0].config
-        num_evals = config0.num_evals
-        chunk_evals = _chunk_evals(num_evals, target_chunks)
-        ckpt_path = out / "checkpoints" / f"{batch.name}.msgpack"
-        init, chunk = _compiled(batch.algo, chunk_evals)
-        configs, keys = batch.stacked()
-        states = init(configs, keys)
-        evals_done = 0
-        if ckpt_path.exists():
-            states, evals_done = storage.load_checkpoint(ckpt_path, states)
-        # Plain (strongly typed) arrays, fresh or restored alike, so both hit one compiled chunk program.
-        states = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), states)
-        bar.update(len(batch.runs) * evals_done * config0.eval_every)
-        label = f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs)"
-        bar.set_description(f"{label}, compiling" if evals_done < num_evals else label)
-        last_checkpoint = time.monotonic()
-        while evals_done < num_evals:
-            start = time.monotonic()
-            states, rows = chunk(configs, states)
-            rows = jax.device_get(rows)
-            evals_done += chunk_evals
-            results = storage.merge_rows(results, _rows(batch, rows, hyper_columns))
-            storage.write_table(out / "results", results)
-            if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
-                if save_policies:
-                    _save_policies(out, batch, states, evals_done)
-                storage.save_checkpoint(ckpt_path, states, evals_done)
-                last_checkpoint = time.monotonic()
-            steps = len(batch.runs) * chunk_evals * config0.eval_every
-            best = np.nanmedian(np.asarray(states.best_return)[: len(batch.runs)])
-            bar.set_postfix(
-                {"steps/s": f"{steps / (time.monotonic() - start):.3g}", "median best": f"{best:.1f}"}
-            )
-            bar.set_description(label)
-            bar.update(steps)
-            if on_chunk is not None:
-                on_chunk(results)
-    bar.close()
+    try:
+        for batch in batches:
+            config0 = batch.runs[0].config
+            num_evals = config0.num_evals
+            chunk_evals = _chunk_evals(num_evals, target_chunks)
+            ckpt_path = out / "checkpoints" / f"{batch.name}.msgpack"
+            init, chunk = _compiled(batch.algo, chunk_evals)
+            configs, keys = batch.stacked()
+            states = init(configs, keys)
+            evals_done = 0
+            if ckpt_path.exists():
+                states, evals_done = storage.load_checkpoint(ckpt_path, states)
+            # Plain (strongly typed) arrays, fresh or restored alike, so both hit one compiled chunk program.
+            states = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), states)
+            bar.update(len(batch.runs) * evals_done * config0.eval_every)
+            label = f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs)"
+            bar.set_description(f"{label}, compiling" if evals_done < num_evals else label)
+            last_checkpoint = time.monotonic()
+            while evals_done < num_evals:
+                start = time.monotonic()
+                states, rows = chunk(configs, states)
+                rows = jax.device_get(rows)
+                evals_done += chunk_evals
+                new_rows = _rows(batch, rows, hyper_columns)
+                results = storage.merge_rows(results, new_rows)
+                storage.write_table(out / "results", results)
+                for logger in loggers:
+                    logger.log(new_rows)
+                if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
+                    if save_policies:
+                        _save_policies(out, batch, states, evals_done)
+                    storage.save_checkpoint(ckpt_path, states, evals_done)
+                    last_checkpoint = time.monotonic()
+                steps = len(batch.runs) * chunk_evals * config0.eval_every
+                best = np.nanmedian(np.asarray(states.best_return)[: len(batch.runs)])
+                bar.set_postfix(
+                    {"steps/s": f"{steps / (time.monotonic() - start):.3g}", "median best": f"{best:.1f}"}
+                )
+                bar.set_description(label)
+                bar.update(steps)
+                if on_chunk is not None:
+                    on_chunk(results)
+    finally:
+        bar.close()
+        for logger in loggers:
+            logger.close()
     if results is None:
         results = pd.DataFrame()
     summary = storage.summarize(results, hyper_columns)
