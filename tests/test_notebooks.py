@@ -34,7 +34,7 @@ PARAMETERS: dict[str, dict[str, Any]] = {
         "SEEDS": (0, 1),
         "HYPERPARAMS": TINY_PPO,
         "MAP_AGENT": "ppo",
-        "MAP_COSTS": (0.1, 0.2),
+        "MAP_COSTS": (0.0, 0.2),
     },
 }
 
