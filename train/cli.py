@@ -40,8 +40,8 @@ def _sequence_fields() -> set[str]:
 
 
 def _parse_set(items: Sequence[str]) -> dict[str, Any]:
-    """`name=v1,v2` -> {name: [v1, v2]} (swept); `name=v` -> {name: v}. For a tuple-valued field such as
-    `hidden`, `hidden=(128,128)` is one value and `hidden=(64,64),(128,128)` two."""
+    """`name=v1,v2` -> {name: [v1, v2]} (swept); `name=v` -> {name: v}; `agent.name=v` for one agent only. For a
+    tuple-valued field such as `hidden`, `hidden=(128,128)` is one value and `hidden=(64,64),(128,128)` two."""
     hyperparams = {}
     sequence_fields = _sequence_fields()
     for item in items:
@@ -49,7 +49,7 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
         if not sep or not name:
             raise ValueError(f"--set: expected NAME=VALUE[,VALUE...], got {item!r}")
         value = _parse_value(text)
-        if name in sequence_fields:
+        if name.rpartition(".")[2] in sequence_fields:
             if isinstance(value, tuple) and value and all(isinstance(v, tuple) for v in value):
                 value = list(value)
         elif isinstance(value, tuple):
@@ -109,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="also train on the plain env (always measured, no cost)")
     sweep.add_argument("--mode", choices=("last", "random", "noisy"), help="what an unmeasured step shows")
     sweep.add_argument("--set", action="append", default=[], metavar="NAME=V[,V...]",
-                       help="a hyperparameter value or list of values, e.g. learning_rate=1e-3,3e-4 "
+                       help="a hyperparameter value or list of values, e.g. learning_rate=1e-3,3e-4 or ppo.num_envs=16 "
                        "(traced fields are vmapped; static ones such as hidden=(128,128) compile separately)")
     sweep.add_argument("--out", required=True, help="output folder (rerun with the same folder to resume)")
     sweep.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")

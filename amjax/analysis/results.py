@@ -181,9 +181,12 @@ def _planned_configs(spec: dict[str, Any]) -> int | None:
         for agent in spec["agents"]:
             fields = ALGORITHMS[agent].config_type.__dataclass_fields__ if agent in ALGORITHMS else None
             count = 1
-            for name, value in spec.get("hyperparams", {}).items():
-                if fields is not None and name not in fields:
+            for key, value in spec.get("hyperparams", {}).items():
+                scope, _, name = key.rpartition(".")
+                if (fields is not None and name not in fields) or scope not in ("", agent):
                     continue
+                if not scope and f"{agent}.{name}" in spec["hyperparams"]:
+                    continue  # the agent's own value replaces the shared one
                 sequence_field = fields is not None and isinstance(fields[name].default, tuple)
                 swept = isinstance(value, list) and (not sequence_field or all(isinstance(v, list) for v in value))
                 count *= len(value) if swept else 1

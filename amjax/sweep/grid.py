@@ -26,10 +26,11 @@ class SweepSpec:
     """What to train: every combination of the listed values.
 
     `hyperparams` maps a config field to the values to sweep (a list) or one value (anything else, a tuple such as
-    `hidden=(64, 64)` included); it applies to every agent
-    whose config has that field. Traced fields (learning rate, gamma, ...) are vmapped within one compiled
-    program; static fields (network widths, num_envs, ...) compile one program per value. `vanilla` adds, per env,
-    agent and seed, a run on the plain environment (the paper's baseline).
+    `hidden=(64, 64)` included); it applies to every agent whose config has that field, and `"agent.field"` (e.g.
+    `"ppo.num_envs"`) to that agent only, overriding an unscoped value of the same field. Traced fields (learning
+    rate, gamma, ...) are vmapped within one compiled program; static fields (network widths, num_envs, ...) compile
+    one program per value. `vanilla` adds, per env, agent and seed, a run on the plain environment (the paper's
+    baseline).
     """
 
     envs: tuple[str, ...] = ("CartPole-v0",)
@@ -77,6 +78,24 @@ def _as_values(name: str, value: Any) -> list[Any]:
     return [value]
 
 
+def split_hyperparam(name: str) -> tuple[str | None, str]:
+    """`"ppo.num_envs"` -> ("ppo", "num_envs"); `"gamma"` -> (None, "gamma")."""
+    agent, dot, field_name = name.rpartition(".")
+    return (agent, field_name) if dot else (None, name)
+
+
+def agent_hyperparams(spec: SweepSpec, agent: str) -> dict[str, tuple[str, Any]]:
+    """The hyperparameters that apply to `agent`: config field -> (the spec's key, its value); scoped keys win."""
+    fields = ALGORITHMS[agent].config_type.__dataclass_fields__
+    chosen: dict[str, tuple[str, Any]] = {}
+    for scoped in (False, True):
+        for key, value in spec.hyperparams.items():
+            scope, name = split_hyperparam(key)
+            if (scope is not None) == scoped and scope in (None, agent) and name in fields:
+                chosen[name] = (key, value)
+    return chosen
+
+
 def validate_spec(spec: SweepSpec) -> None:
     """Check the whole spec on concrete values (before anything is written or compiled)."""
     if not spec.envs or not spec.agents or not spec.seeds:
@@ -93,7 +112,13 @@ def validate_spec(spec: SweepSpec) -> None:
         check_positive_int("seed", seed, minimum=0)
     if len(set(spec.seeds)) != len(spec.seeds):
         raise ValueError(f"seeds: repeated values in {list(spec.seeds)}")
-    for name, value in spec.hyperparams.items():
+    for key, value in spec.hyperparams.items():
+        scope, name = split_hyperparam(key)
+        if scope is not None:
+            check_choice(f"hyperparameter {key!r}: agent", scope, sorted(ALGORITHMS))
+            if scope not in spec.agents:
+                raise ValueError(f"hyperparameter {key!r}: agent {scope!r} is not in this sweep's agents "
+                                 f"{list(spec.agents)}")
         if name in SCHEDULE_FIELDS:
             raise ValueError(
                 f"{name} is set for the whole sweep (--steps / --eval-every / --eval-episodes), "
@@ -101,13 +126,14 @@ def validate_spec(spec: SweepSpec) -> None:
             )
         if name in GRID_FIELDS or name == "mode":
             raise ValueError(f"{name} is a grid axis; use its own option, not a hyperparameter")
-        owners = [a for a in spec.agents if name in ALGORITHMS[a].config_type.__dataclass_fields__]
+        agents = spec.agents if scope is None else (scope,)
+        owners = [a for a in agents if name in ALGORITHMS[a].config_type.__dataclass_fields__]
         if not owners:
             raise ValueError(
-                f"hyperparameter {name!r} belongs to none of the agents {list(spec.agents)}; "
-                f"allowed: {', '.join(sorted(_all_fields(spec.agents)))}"
+                f"hyperparameter {key!r} belongs to none of the agents {list(agents)}; "
+                f"allowed: {', '.join(sorted(_all_fields(agents)))}"
             )
-        _as_values(name, value)
+        _as_values(key, value)
 
 
 def _all_fields(agents: Sequence[str]) -> set[str]:
@@ -129,7 +155,9 @@ def expand(spec: SweepSpec) -> list[RunConfig]:
     runs = []
     for env, agent in itertools.product(spec.envs, spec.agents):
         config_type = ALGORITHMS[agent].config_type
-        own = {k: _as_values(k, v) for k, v in spec.hyperparams.items() if k in config_type.__dataclass_fields__}
+        applies = agent_hyperparams(spec, agent)  # field -> (spec key, value)
+        own = {key: _as_values(key, value) for key, value in applies.values()}
+        field_of = {key: name for name, (key, _) in applies.items()}
         settings = [(False, float(c)) for c in spec.costs] + ([(True, 0.0)] if spec.vanilla else [])
         for (vanilla, cost), values, seed in itertools.product(
             settings, itertools.product(*own.values()), spec.seeds
@@ -143,7 +171,7 @@ def expand(spec: SweepSpec) -> list[RunConfig]:
                 total_timesteps=spec.total_timesteps,
                 eval_every=spec.eval_every,
                 eval_episodes=spec.eval_episodes,
-                **{k: tuple(v) if isinstance(v, list) else v for k, v in hp.items()},
+                **{field_of[k]: tuple(v) if isinstance(v, list) else v for k, v in hp.items()},
             )
             config.validate()
             runs.append(

@@ -61,6 +61,24 @@ def test_grid_groups_and_ids():
     assert len(group_runs(expand(widths))) == 2  # a static field compiles separately
 
 
+def test_agent_scoped_hyperparameters():
+    spec = SweepSpec(agents=("ppo", "dqn"), costs=(0.1,), seeds=(0,), total_timesteps=4096, eval_every=1024,
+                     hyperparams={"gamma": 0.95, "ppo.gamma": [0.9, 0.99], "dqn.learning_rate": 3e-4})
+    runs = expand(spec)
+    ppo_runs = [r for r in runs if r.agent == "ppo"]
+    (dqn_run,) = [r for r in runs if r.agent == "dqn"]
+    assert sorted(r.config.gamma for r in ppo_runs) == [0.9, 0.99]  # the scoped list wins over the shared value
+    assert [r.hyperparams for r in ppo_runs] == [{"ppo.gamma": 0.9}, {"ppo.gamma": 0.99}]
+    assert dqn_run.config.gamma == 0.95 and dqn_run.config.learning_rate == 3e-4
+    from amjax.analysis.results import _planned_configs
+
+    assert _planned_configs(spec.to_json()) == len(runs) == 3
+    for bad, message in (({"sarsa.gamma": 0.9}, "agent"), ({"drqn.gamma": 0.9}, "not in this sweep's agents"),
+                         ({"dqn.num_steps": 8}, "belongs to none of the agents")):
+        with pytest.raises(ValueError, match=message):
+            expand(SweepSpec(agents=("ppo", "dqn"), hyperparams=bad))
+
+
 def test_full_run_tables(full_run):
     results, summary = full_run.results, full_run.summary
     assert len(results) == 8 * 4 and not results.duplicated(["config_id", "env_steps"]).any()
