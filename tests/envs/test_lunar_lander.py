@@ -31,11 +31,21 @@ def _recorded_env(module, seed: int, continuous: bool = False):
     return env, recorder
 
 
+def _reset(heights, init_force, params):
+    # The module's own jitted reset/step, called as `ll.free_flight_replay` calls them, so the tests and the
+    # replay share one compiled program each (each compile of the solver takes ~10 s of CPU).
+    return ll._jit_reset(heights, init_force, params, velocity_iterations=ll.VELOCITY_ITERATIONS)
+
+
+def _step(state, action, dispersion, params):
+    return ll._jit_step(state, action, dispersion, params, False, ll.VELOCITY_ITERATIONS)
+
+
 @functools.cache
 def _jitted():
     return {
-        "reset": jax.jit(ll.reset_from_draws),
-        "step": jax.jit(ll.step_from_draws, static_argnames="continuous"),
+        "reset": _reset,
+        "step": _step,
         "reward": jax.jit(ll.reward_and_termination),
         "decode": jax.jit(ll.decode_action, static_argnames="continuous"),
         "policy": jax.jit(ll.heuristic_action),
