@@ -25,32 +25,15 @@ import numpy as np
 from amjax.agents.saved import SavedPolicy, load_policy
 from amjax.analysis.maps import record_agent
 from amjax.sweep import SweepSpec, run_sweep
+from train.presets import LUNAR_LANDER_PPO
 
 ENV_ID = "LunarLander-v3"
 SOLVED = 200.0
 
-# PPO hyperparameters: the RL Baselines3 Zoo's tuned LunarLander-v2 entry (hyperparams/ppo.yml in
-# DLR-RM/rl-baselines3-zoo: n_envs 16, n_timesteps 1e6, n_steps 1024, batch_size 64, gae_lambda 0.98, gamma 0.999,
-# n_epochs 4, ent_coef 0.01) with SB3's PPO defaults for the rest (learning_rate 3e-4 constant, clip_range 0.2,
-# vf_coef 0.5, max_grad_norm 0.5, separate 64x64 tanh actor and critic). batch_size 64 -> 16 * 1024 / 64 = 256
-# minibatches. Differences that remain: amjax clips the value loss with clip_eps (SB3 does not by default) and
-# initialises with a scaled normal instead of orthogonal matrices (amjax/agents/networks.py).
-HYPERPARAMS = {
-    "num_envs": 16,
-    "num_steps": 1024,
-    "num_minibatches": 256,
-    "update_epochs": 4,
-    "hidden": (64, 64),
-    "activation": "tanh",
-    "anneal_lr": False,
-    "learning_rate": 3e-4,
-    "gamma": 0.999,
-    "gae_lambda": 0.98,
-    "clip_eps": 0.2,
-    "ent_coef": 0.01,
-    "vf_coef": 0.5,
-    "max_grad_norm": 0.5,
-}
+# PPO hyperparameters: the RL Baselines3 Zoo's tuned LunarLander entry (sources and details in train/presets.py).
+# Differences that remain: amjax clips the value loss with clip_eps (SB3 does not by default) and initialises with a
+# scaled normal instead of orthogonal matrices (amjax/agents/networks.py).
+HYPERPARAMS = LUNAR_LANDER_PPO
 TOTAL_TIMESTEPS = 64 * 16 * 1024  # 1,048,576 (the Zoo's 1e6, rounded to whole updates)
 EVAL_EVERY = 4 * 16 * 1024  # 16 evaluations
 

@@ -136,16 +136,19 @@ def load_sweep_policy(out: str | Path, config_id: str) -> SavedPolicy:
     return load_policy(path)
 
 
-def _save_policies(out: Path, batch: _Batch, states: Any, evals_done: int) -> None:
+def _save_policies(out: Path, batch: _Batch, states: Any, evals_done: int, results: pd.DataFrame) -> None:
     """Write each real configuration's best policy so far (parameters of its best evaluation)."""
     best_params, best_return, best_fraction = jax.device_get(
         (states.best_params, states.best_return, states.best_measured_fraction)
     )
+    healthy = results[~results.diverged & results.eval_return.notna()]
+    best_steps = healthy.loc[healthy.groupby("config_id").eval_return.idxmax()].set_index("config_id").env_steps
     for i, run in enumerate(batch.runs):
         info = {
             "config_id": run.config_id, "env": run.env, "agent": run.agent, "vanilla": run.vanilla,
             "cost": run.cost, "seed": run.seed, "best_return": float(best_return[i]),
             "best_measured_fraction": float(best_fraction[i]),
+            "best_env_steps": int(best_steps.get(run.config_id, 0)),
             "trained_env_steps": evals_done * run.config.eval_every,
         }
         params = jax.tree.map(operator.itemgetter(i), best_params)
@@ -233,7 +236,7 @@ def run_sweep(
                     logger.log(new_rows)
                 if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
                     if save_policies:
-                        _save_policies(out, batch, states, evals_done)
+                        _save_policies(out, batch, states, evals_done, results)
                     storage.save_checkpoint(ckpt_path, states, evals_done)
                     last_checkpoint = time.monotonic()
                 steps = len(batch.runs) * chunk_evals * config0.eval_every

@@ -20,6 +20,11 @@ def test_replication_grid_is_the_papers():
     from amjax.sweep.grid import expand
 
     assert sum(len(expand(spec)) for spec in specs.values()) == 3 * 5 * 3 * 10
+    # LunarLander's PPO runs use the tuned settings (agent-scoped: DQN and DRQN keep their defaults).
+    lunar = {r.agent: r.config for r in expand(specs["LunarLander-v3"])}
+    assert lunar["ppo"].num_envs == 16 and lunar["ppo"].gamma == pytest.approx(0.999)
+    assert lunar["dqn"].gamma == pytest.approx(0.99)
+    assert presets.replicate_specs(("LunarLander-v3",), ("dqn",))["LunarLander-v3"].hyperparams == {}
 
 
 def test_replicate_runs_reports_and_resumes(tmp_path, monkeypatch, capsys):

@@ -107,6 +107,8 @@ def test_best_policy_per_config_reproduces_its_best_score(full_run):
     for row in summary.itertuples():
         saved = load_sweep_policy(full_run.out, row.config_id)
         assert saved.info["best_return"] == pytest.approx(row.best_return, rel=1e-6)
+        assert saved.info["best_env_steps"] == row.best_env_steps
+        assert saved.info["trained_env_steps"] == TINY.total_timesteps
         assert saved.config.cost == pytest.approx(row.cost) and saved.info["seed"] == row.seed
         # The driver's key for the best evaluation: split(PRNGKey(seed))[1] folded with its index.
         eval_key = jax.random.fold_in(jax.random.split(jax.random.PRNGKey(row.seed))[1],
