@@ -620,12 +620,10 @@ def note_lines(args: argparse.Namespace, results: list[dict[str, Any]]) -> list[
     ]
     if dqn_steps and "reference" in args.impls:
         notes.append(
-            f"DQN warm-up: the first learning_starts = {starts:,} env steps have no gradient step. The plain "
-            "reference's step counter is the same for every vmapped config (unbatched), so its lax.cond stays a "
-            "branch and skips that work; amjax's runner passes per-config (batched) states, so it computes the "
-            "gradient steps and discards them (jnp.where). That favours the reference by up to "
-            + ", ".join(f"{min(starts / s, 1):.0%} of the gradient work at {s:,} steps" for s in dqn_steps)
-            + "."
+            f"DQN warm-up: the first learning_starts = {starts:,} env steps have no gradient step "
+            + ", ".join(f"({min(starts / s, 1):.0%} of the run at {s:,} steps)" for s in dqn_steps)
+            + ". Both skip that work: the reference's lax.cond on its unbatched step counter, amjax's "
+            "training.uniform_cond on its per-config counters (a real branch under vmap)."
         )
     if any(r["impl"] == "sb3" for r in results):
         notes.append(

@@ -30,8 +30,15 @@ from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import DuelingQNetwork
 from amjax.agents.optim import clipped_adam
 from amjax.agents.replay import ReplayBuffer, replay_add, replay_init, replay_sample
-from amjax.agents.rollout import EnvBatch, Transition, reset_envs, rollout
-from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, greedy_policy, make_train
+from amjax.agents.rollout import EnvBatch, Transition, fast_key, key_bits, reset_envs, rollout
+from amjax.agents.training import (
+    Algorithm,
+    EpisodeSums,
+    UpdateStats,
+    greedy_policy,
+    make_train,
+    uniform_cond,
+)
 from amjax.validation import check_choice, check_positive_int
 
 
@@ -179,7 +186,7 @@ def init(config: DQNConfig, key: jax.Array) -> DQNState:
         buffer=replay_init(_example_item(envs), config.buffer_size),
         envs=envs,
         pending=pending,
-        key=key,
+        key=key_bits(key),
         env_steps=jnp.int32(0),
     )
 
@@ -210,8 +217,7 @@ def td_targets(
 def update(config: DQNConfig, state: DQNState) -> tuple[DQNState, UpdateStats]:
     env, env_params, _ = config.make_env()
     network = _network(config, env, env_params)
-    optimizer = make_optimizer(config)
-    rollout_key, learn_key, key = jax.random.split(state.key, 3)
+    rollout_key, learn_key, key = jax.random.split(fast_key(state.key), 3)
 
     # 1. Act epsilon-greedily for train_freq steps and store the transitions.
     eps = epsilon(config, state.env_steps)
@@ -230,36 +236,46 @@ def update(config: DQNConfig, state: DQNState) -> tuple[DQNState, UpdateStats]:
     buffer = replay_add(state.buffer, jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), items))
     env_steps = state.env_steps + config.steps_per_update()
 
-    # 2. Gradient steps on double-Q targets, once enough transitions are stored.
-    def loss_fn(params, target_params, sample):
-        q = network.apply(params, sample["obs"])
-        q_taken = jnp.take_along_axis(q, sample["action"][:, None], -1)[:, 0]
-        target = td_targets(
-            network.apply(params, sample["next_obs"]),
-            network.apply(target_params, sample["next_obs"]),
-            sample["reward"],
-            sample["discount"],
-            config.double_q,
+    # 2. Gradient steps on double-Q targets, once enough transitions are stored. `uniform_cond` keeps this a real
+    #    branch in a vmapped sweep (every configuration of a batch starts learning at the same step).
+    def learn(config, params, opt_state, target_params, buffer, key):
+        def loss_fn(params, sample):
+            batch_size = sample["obs"].shape[0]
+            if config.double_q:  # online Q of obs and next obs in one forward pass
+                q_both = network.apply(params, jnp.concatenate([sample["obs"], sample["next_obs"]]))
+                q, q_next_online = q_both[:batch_size], jax.lax.stop_gradient(q_both[batch_size:])
+            else:
+                q = network.apply(params, sample["obs"])
+                q_next_online = None
+            q_next_target = network.apply(target_params, sample["next_obs"])
+            q_taken = jnp.take_along_axis(q, sample["action"][:, None], -1)[:, 0]
+            target = td_targets(
+                q_next_target if q_next_online is None else q_next_online,
+                q_next_target,
+                sample["reward"],
+                sample["discount"],
+                config.double_q,
+            )
+            return optax.huber_loss(q_taken, jax.lax.stop_gradient(target)).mean()
+
+        def gradient_step(carry, key):
+            params, opt_state = carry
+            sample = replay_sample(buffer, key, config.batch_size)
+            loss, grads = jax.value_and_grad(loss_fn)(params, sample)
+            updates, opt_state = make_optimizer(config).update(grads, opt_state, params)
+            return (optax.apply_updates(params, updates), opt_state), loss
+
+        (params, opt_state), losses = jax.lax.scan(
+            gradient_step, (params, opt_state), jax.random.split(key, config.gradient_steps)
         )
-        return optax.huber_loss(q_taken, jax.lax.stop_gradient(target)).mean()
+        return params, opt_state, losses.mean()
 
-    def gradient_step(carry, key):
-        params, opt_state = carry
-        sample = replay_sample(buffer, key, config.batch_size)
-        loss, grads = jax.value_and_grad(loss_fn)(params, state.target_params, sample)
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        return (optax.apply_updates(params, updates), opt_state), loss
+    def wait(config, params, opt_state, target_params, buffer, key):
+        return params, opt_state, jnp.float32(0.0)
 
-    (params, opt_state), losses = jax.lax.scan(
-        gradient_step,
-        (state.params, state.opt_state),
-        jax.random.split(learn_key, config.gradient_steps),
-    )
     learning = env_steps >= config.learning_starts
-    params, opt_state = jax.tree.map(
-        lambda new, old: jnp.where(learning, new, old),
-        (params, opt_state),
-        (state.params, state.opt_state),
+    params, opt_state, loss = uniform_cond(
+        learning, learn, wait, config, state.params, state.opt_state, state.target_params, buffer, learn_key
     )
 
     # 3. Target network: blend with rate tau each time target_update_interval env steps pass.
@@ -267,11 +283,16 @@ def update(config: DQNConfig, state: DQNState) -> tuple[DQNState, UpdateStats]:
         env_steps // config.target_update_interval
         != state.env_steps // config.target_update_interval
     )
-    tau = jnp.where(sync, config.tau, 0.0)
-    target_params = optax.incremental_update(params, state.target_params, tau)
+    target_params = uniform_cond(
+        sync,
+        lambda tau, params, target: optax.incremental_update(params, target, tau),
+        lambda tau, params, target: target,
+        config.tau,
+        params,
+        state.target_params,
+    )
 
-    new_state = DQNState(params, target_params, opt_state, buffer, envs, pending, key, env_steps)
-    loss = jnp.where(learning, losses.mean(), 0.0)
+    new_state = DQNState(params, target_params, opt_state, buffer, envs, pending, key_bits(key), env_steps)
     return new_state, UpdateStats(loss, EpisodeSums.of(transitions))
 
 

@@ -36,6 +36,41 @@ class MLP(nn.Module):
         return x
 
 
+@jax.custom_vjp
+def _narrow_matmul(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    return x @ kernel
+
+
+def _narrow_matmul_fwd(x: jax.Array, kernel: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+    return x @ kernel, (x, kernel)
+
+
+def _narrow_matmul_bwd(residuals: tuple[jax.Array, jax.Array], g: jax.Array) -> tuple[jax.Array, jax.Array]:
+    x, kernel = residuals
+    rows_x, rows_g = x.reshape(-1, x.shape[-1]), g.reshape(-1, g.shape[-1])
+    # The kernel gradient as [out, in], then transposed: with few outputs (a policy head), XLA's CPU dot is ~5x
+    # faster writing the small dimension first; the barrier keeps XLA from folding the transpose back into the dot.
+    kernel_grad = jax.lax.optimization_barrier(jnp.einsum("bo,bi->oi", rows_g, rows_x))
+    return g @ kernel.T, kernel_grad.T
+
+
+_narrow_matmul.defvjp(_narrow_matmul_fwd, _narrow_matmul_bwd)
+
+
+class NarrowDense(nn.Module):
+    """`nn.Dense` (same parameters, names and initialisation) for a layer with few outputs, with a faster kernel
+    gradient on CPU (see `_narrow_matmul_bwd`)."""
+
+    features: int
+    kernel_init: nn.initializers.Initializer = nn.initializers.lecun_normal()
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        kernel = self.param("kernel", self.kernel_init, (x.shape[-1], self.features), jnp.float32)
+        bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
+        return _narrow_matmul(x, kernel) + bias
+
+
 class ActorCritic(nn.Module):
     """Categorical policy logits and a state value; separate torsos unless `shared`."""
 
@@ -48,7 +83,7 @@ class ActorCritic(nn.Module):
     def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
         actor = MLP(self.hidden, self.activation, name="actor_torso")(obs)
         critic = actor if self.shared else MLP(self.hidden, self.activation, name="critic_torso")(obs)
-        logits = nn.Dense(self.num_actions, kernel_init=scaled_init(0.01), name="logits")(actor)
+        logits = NarrowDense(self.num_actions, kernel_init=scaled_init(0.01), name="logits")(actor)
         value = nn.Dense(1, kernel_init=scaled_init(1.0), name="value")(critic)
         return logits, jnp.squeeze(value, -1)
 
@@ -64,15 +99,16 @@ class DuelingQNetwork(nn.Module):
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
         x = MLP(self.hidden, self.activation)(obs)
-        return dueling_head(x, self.num_actions, self.dueling)
+        return dueling_head(x, self.num_actions, self.dueling, head=NarrowDense)
 
 
-def dueling_head(x: jax.Array, num_actions: int, dueling: bool) -> jax.Array:
-    """Q-values from features: a dueling value/advantage split, or a plain linear head."""
+def dueling_head(x: jax.Array, num_actions: int, dueling: bool, head: type[nn.Module] = nn.Dense) -> jax.Array:
+    """Q-values from features: a dueling value/advantage split, or a plain linear head (`head`: the layer class of
+    the per-action outputs, `nn.Dense` or the same parameters as `NarrowDense`)."""
     if not dueling:
-        return nn.Dense(num_actions, kernel_init=scaled_init(1.0), name="q")(x)
+        return head(num_actions, kernel_init=scaled_init(1.0), name="q")(x)
     value = nn.Dense(1, kernel_init=scaled_init(1.0), name="state_value")(x)
-    advantage = nn.Dense(num_actions, kernel_init=scaled_init(1.0), name="advantage")(x)
+    advantage = head(num_actions, kernel_init=scaled_init(1.0), name="advantage")(x)
     return value + advantage - advantage.mean(-1, keepdims=True)
 
 
