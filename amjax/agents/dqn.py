@@ -238,44 +238,38 @@ def update(config: DQNConfig, state: DQNState) -> tuple[DQNState, UpdateStats]:
 
     # 2. Gradient steps on double-Q targets, once enough transitions are stored. `uniform_cond` keeps this a real
     #    branch in a vmapped sweep (every configuration of a batch starts learning at the same step).
-    def learn(config, params, opt_state, target_params, buffer, key):
+    def learn(config, params, opt_state, target_params, samples):
         def loss_fn(params, sample):
-            batch_size = sample["obs"].shape[0]
-            if config.double_q:  # online Q of obs and next obs in one forward pass
-                q_both = network.apply(params, jnp.concatenate([sample["obs"], sample["next_obs"]]))
-                q, q_next_online = q_both[:batch_size], jax.lax.stop_gradient(q_both[batch_size:])
-            else:
-                q = network.apply(params, sample["obs"])
-                q_next_online = None
-            q_next_target = network.apply(target_params, sample["next_obs"])
+            # Separate forward passes: one over [obs; next_obs] would double the backward pass's matmuls.
+            q = network.apply(params, sample["obs"])
             q_taken = jnp.take_along_axis(q, sample["action"][:, None], -1)[:, 0]
+            q_next_target = network.apply(target_params, sample["next_obs"])
+            q_next_online = network.apply(params, sample["next_obs"]) if config.double_q else q_next_target
             target = td_targets(
-                q_next_target if q_next_online is None else q_next_online,
-                q_next_target,
-                sample["reward"],
-                sample["discount"],
-                config.double_q,
+                q_next_online, q_next_target, sample["reward"], sample["discount"], config.double_q
             )
             return optax.huber_loss(q_taken, jax.lax.stop_gradient(target)).mean()
 
-        def gradient_step(carry, key):
+        def gradient_step(carry, sample):
             params, opt_state = carry
-            sample = replay_sample(buffer, key, config.batch_size)
             loss, grads = jax.value_and_grad(loss_fn)(params, sample)
             updates, opt_state = make_optimizer(config).update(grads, opt_state, params)
             return (optax.apply_updates(params, updates), opt_state), loss
 
-        (params, opt_state), losses = jax.lax.scan(
-            gradient_step, (params, opt_state), jax.random.split(key, config.gradient_steps)
-        )
+        (params, opt_state), losses = jax.lax.scan(gradient_step, (params, opt_state), samples)
         return params, opt_state, losses.mean()
 
-    def wait(config, params, opt_state, target_params, buffer, key):
+    def wait(config, params, opt_state, target_params, samples):
         return params, opt_state, jnp.float32(0.0)
 
+    # The minibatches are drawn outside the branch: the buffer (megabytes per configuration) stays out of the
+    # conditional's operands, which XLA may copy.
+    samples = jax.vmap(lambda k: replay_sample(buffer, k, config.batch_size))(
+        jax.random.split(learn_key, config.gradient_steps)
+    )
     learning = env_steps >= config.learning_starts
     params, opt_state, loss = uniform_cond(
-        learning, learn, wait, config, state.params, state.opt_state, state.target_params, buffer, learn_key
+        learning, learn, wait, config, state.params, state.opt_state, state.target_params, samples
     )
 
     # 3. Target network: blend with rate tau each time target_update_interval env steps pass.
