@@ -310,7 +310,7 @@ def make_train(algo: Algorithm) -> Callable[[AgentConfig, jax.Array], tuple[RunS
         return run_evals(algo, config, init_run(algo, config, key), config.num_evals)
 
     def train(config: AgentConfig, key: jax.Array) -> tuple[RunState, EvalRow]:
-        if not isinstance(config, algo.config_type):
+        if type(config) is not algo.config_type:  # exact: PPORNNConfig subclasses PPOConfig
             raise TypeError(f"config: expected {algo.config_type.__name__}, got {type(config).__name__}")
         config.validate()
         return compiled(config, key)
