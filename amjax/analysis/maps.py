@@ -5,9 +5,10 @@
 `record_agent` does the same for a trained agent (its config and network parameters); `plot_measurement_map` draws
 the grid episodes x time steps coloured measured / not measured / episode over.
 
-Randomness, so that a hand-written loop can reproduce a map: `reset_key, run_key = split(key)`; episode i starts
-from `reset(split(reset_key, N)[i])`; step t uses `act_key, env_key = split(split(run_key, max_steps)[t])`, the
-policy gets `act_key` and env i steps with `split(env_key, N)[i]` (as `amjax.agents.training.evaluate`).
+Randomness, so that a hand-written loop can reproduce a map: `reset_key, run_key = split(fast_key(key))` (Philox,
+`amjax.agents.rollout.fast_key`); episode i starts from `reset(split(reset_key, N)[i])`; step t uses `act_key,
+env_key = split(split(run_key, max_steps)[t])`, the policy gets `act_key` and env i steps with `split(env_key,
+N)[i]` (as `amjax.agents.training.evaluate`).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from amjax.agents.config import AgentConfig
-from amjax.agents.rollout import ActFn, EnvBatch
+from amjax.agents.rollout import ActFn, EnvBatch, fast_key
 from amjax.agents.training import Policy
 
 # Colours of the three cell kinds: not measured, measured, episode over.
@@ -67,7 +68,7 @@ def _max_steps(env_params: Any) -> int:
 def _scan(
     env: Any, act: ActFn, num_episodes: int, max_steps: int, env_params: Any, carry: Any, key: jax.Array
 ) -> dict[str, jax.Array]:
-    reset_key, run_key = jax.random.split(key)
+    reset_key, run_key = jax.random.split(fast_key(key))
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(reset_key, num_episodes), env_params)
     batch = EnvBatch(obs, state, jnp.ones(num_episodes, bool))
     running = jnp.ones(num_episodes, bool)

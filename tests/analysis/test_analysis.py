@@ -21,6 +21,7 @@ from matplotlib.figure import Figure  # noqa: E402
 import amjax  # noqa: E402
 from amjax import analysis  # noqa: E402
 from amjax.agents import ppo  # noqa: E402
+from amjax.agents.rollout import fast_key  # noqa: E402
 from amjax.sweep import SweepSpec, run_sweep  # noqa: E402
 from train import report as report_cli  # noqa: E402
 
@@ -227,7 +228,7 @@ def _always_policy(num_controls: int):
 
 def _by_hand(env, params, key, measure_at) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Step each episode in a Python loop with the recorder's keys; returns measured, active, costed returns."""
-    reset_key, run_key = jax.random.split(key)
+    reset_key, run_key = jax.random.split(fast_key(key))
     reset_keys = jax.random.split(reset_key, NUM_EPISODES)
     env_keys = [jax.random.split(k)[1] for k in jax.random.split(run_key, MAX_STEPS)]
     measured = np.zeros((NUM_EPISODES, MAX_STEPS), bool)
