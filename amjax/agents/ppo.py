@@ -17,7 +17,7 @@ from flax import struct
 
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import ActorCritic
-from amjax.agents.optim import clipped_adam
+from amjax.agents.optim import clipped_adam, minibatch_step
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.training import (
     Algorithm,
@@ -236,18 +236,14 @@ def update(config: PPOConfig, state: PPOState) -> tuple[PPOState, UpdateStats]:
             obs, *rest = minibatch
             return clipped_loss(config, *network.apply(params, obs), *rest)
 
-        def minibatch_step(carry, minibatch):
-            params, opt_state = carry
-            loss, grads = jax.value_and_grad(loss_fn)(params, minibatch)
-            updates, opt_state = optimizer.update(grads, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), loss
+        step = minibatch_step(optimizer, loss_fn)
 
         def epoch(carry, key):
             order = shuffle(key, config.steps_per_update())
             minibatches = jax.tree.map(
                 lambda x: x[order].reshape(config.num_minibatches, -1, *x.shape[1:]), batch
             )
-            return jax.lax.scan(minibatch_step, carry, minibatches)
+            return jax.lax.scan(step, carry, minibatches)
 
         (params, opt_state), losses = jax.lax.scan(
             epoch, (params, opt_state), jax.random.split(fast_key(key_data), config.update_epochs)

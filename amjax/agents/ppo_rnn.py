@@ -18,11 +18,11 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import optax
 from flax import struct
 
 from amjax.agents.config import static
 from amjax.agents.networks import CELLS, RecurrentActorCritic, unroll, zero_carry
+from amjax.agents.optim import minibatch_step
 from amjax.agents.ppo import PPOConfig, clipped_loss, gae, make_optimizer
 from amjax.agents.rollout import EnvBatch, reset_envs, rollout
 from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, make_train
@@ -138,17 +138,13 @@ def update(config: PPORNNConfig, state: PPORNNState) -> tuple[PPORNNState, Updat
         start, (obs, first, *rest) = minibatch
         return clipped_loss(config, *unroll_sequences(config, params, start, obs, first), *rest)
 
-    def minibatch_step(carry, minibatch):
-        params, opt_state = carry
-        loss, grads = jax.value_and_grad(loss_fn)(params, minibatch)
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        return (optax.apply_updates(params, updates), opt_state), loss
+    step = minibatch_step(optimizer, loss_fn)
 
     def epoch(carry, key):
         order = jax.random.permutation(key, config.num_envs).reshape(config.num_minibatches, -1)  # [M, E / M]
         starts = jax.tree.map(lambda c: c[order], state.carry)
         minibatches = jax.tree.map(lambda x: jnp.moveaxis(x[:, order], 1, 0), sequences)  # [M, T, E / M, ...]
-        return jax.lax.scan(minibatch_step, carry, (starts, minibatches))
+        return jax.lax.scan(step, carry, (starts, minibatches))
 
     (params, opt_state), losses = jax.lax.scan(
         epoch, (state.params, state.opt_state), jax.random.split(epoch_key, config.update_epochs)
