@@ -11,7 +11,7 @@ Last, it draws the measurement maps (10 greedy test episodes) of each agent's be
         --maps docs/figures/recurrent_maps_cost0.3.png                                  # the full experiment
     python benchmarks/recurrent_vs_dqn.py --smoke --out /tmp/recurrent_smoke           # a tiny smoke run
 
-The full run is 2 agents x 3 costs x 10 seeds x 81,920 env steps: 26 min on one loaded CPU core, almost all of
+The full run is 2 agents x 3 costs x 10 seeds x 153,600 env steps: 44 min on one CPU core, almost all of
 it DRQN (docs/recurrent.md has the results); rerunning the same command resumes it.
 """
 
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", required=True, help="output folder (resumes a sweep already there)")
     parser.add_argument("--costs", type=float, nargs="+", default=[0.1, 0.2, 0.3])
     parser.add_argument("--seeds", type=int, default=10)
-    parser.add_argument("--steps", type=int, default=81_920, help="env steps per configuration")
+    parser.add_argument("--steps", type=int, default=153_600, help="env steps per configuration")
     parser.add_argument("--eval-every", type=int, default=10_240)
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--maps", default=None, help="measurement-map PNG (default: OUT/measurement_maps.png)")

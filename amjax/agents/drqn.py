@@ -32,7 +32,7 @@ Dueling DQN finds "measure every other step" (170 at cost 0.3, 50% measured):
   comes from more gradient steps per env step, not from more env steps.
 So n_step=10, learning_rate=2e-3, gradient_steps=4. The learner dominates the cost: with these defaults 6 vmapped
 configurations ran at 1.1k-1.6k env steps/s and 30 at about 1.7k on one loaded CPU core (DQN: about 30k for 30).
-The 10-seed comparison with DQN at 81,920 steps is in docs/recurrent.md.
+The 10-seed comparison with DQN (153,600 steps) is in docs/recurrent.md.
 """
 
 from __future__ import annotations
