@@ -133,6 +133,20 @@ def gae(
     return advantages, advantages + values
 
 
+def rollout_advantages(config: PPOConfig, transitions: Any, values: jax.Array, next_values: jax.Array):
+    """`gae` of a rollout's transitions ([T, E]): advantages and value targets, with `next_values` the values of
+    the pre-reset next observations (so a truncated episode bootstraps and a terminated one does not)."""
+    return gae(
+        transitions.reward,
+        values,
+        next_values,
+        transitions.terminated.astype(jnp.float32),
+        transitions.done,
+        config.gamma,
+        config.gae_lambda,
+    )
+
+
 def clipped_loss(
     config: Any,
     logits: jax.Array,
@@ -215,15 +229,7 @@ def update(config: PPOConfig, state: PPOState) -> tuple[PPOState, UpdateStats]:
     both_obs = jnp.concatenate([transitions.obs, transitions.next_obs])
     both_values = in_groups(values_of, _group_size(256, width))(state.params, both_obs)
     values, next_values = jnp.split(both_values, 2)
-    advantages, targets = gae(
-        transitions.reward,
-        values,
-        next_values,
-        transitions.terminated.astype(jnp.float32),
-        transitions.done,
-        config.gamma,
-        config.gae_lambda,
-    )
+    advantages, targets = rollout_advantages(config, transitions, values, next_values)
 
     # 3. Epochs of minibatch steps on the clipped objective.
     batch = (transitions.obs, transitions.action, log_probs, values, advantages, targets)
@@ -267,4 +273,6 @@ def greedy(config: PPOConfig, params: Any):
 PPO = Algorithm("ppo", PPOConfig, init, update, greedy, params=lambda state: state.params)
 train = make_train(PPO)
 
-__all__ = ["PPO", "PPOConfig", "PPOState", "clipped_loss", "gae", "make_optimizer", "shuffle", "train"]
+__all__ = [
+    "PPO", "PPOConfig", "PPOState", "clipped_loss", "gae", "make_optimizer", "rollout_advantages", "shuffle", "train",
+]

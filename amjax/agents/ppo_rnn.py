@@ -23,7 +23,7 @@ from flax import struct
 from amjax.agents.config import static
 from amjax.agents.networks import CELLS, RecurrentActorCritic, unroll, zero_carry
 from amjax.agents.optim import minibatch_step
-from amjax.agents.ppo import PPOConfig, clipped_loss, gae, make_optimizer
+from amjax.agents.ppo import PPOConfig, clipped_loss, make_optimizer, rollout_advantages
 from amjax.agents.rollout import EnvBatch, reset_envs, rollout
 from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, make_train
 from amjax.validation import check_choice, check_positive_int
@@ -121,15 +121,7 @@ def update(config: PPORNNConfig, state: PPORNNState) -> tuple[PPORNNState, Updat
 
     # 2. Advantages: the value of every pre-reset next observation, one recurrent step on from its carry.
     _, (_, next_values) = net.apply(state.params, carries, transitions.next_obs, jnp.zeros_like(first))
-    advantages, targets = gae(
-        transitions.reward,
-        values,
-        next_values,
-        transitions.terminated.astype(jnp.float32),
-        transitions.done,
-        config.gamma,
-        config.gae_lambda,
-    )
+    advantages, targets = rollout_advantages(config, transitions, values, next_values)
 
     # 3. Epochs of minibatches of whole env sequences, re-unrolled from the rollout's initial carries.
     sequences = (transitions.obs, first, transitions.action, log_probs, values, advantages, targets)  # [T, E, ...]

@@ -33,7 +33,8 @@ class PolicyFileError(ValueError):
     """A policy file that cannot be read, or whose contents do not fit the network its config describes."""
 
 
-def _algorithm(agent: str):
+def algorithm(agent: str):
+    """The registered algorithm named `agent`; ValueError listing the names otherwise."""
     from amjax.agents import ALGORITHMS  # the registry imports this module's siblings
 
     if agent not in ALGORITHMS:
@@ -41,7 +42,8 @@ def _algorithm(agent: str):
     return ALGORITHMS[agent]
 
 
-def _agent_of(config: AgentConfig) -> str:
+def agent_of(config: AgentConfig) -> str:
+    """The registered name of the algorithm whose config type `config` is (exactly)."""
     from amjax.agents import ALGORITHMS
 
     for name, algo in ALGORITHMS.items():
@@ -52,7 +54,7 @@ def _agent_of(config: AgentConfig) -> str:
 
 def params_template(agent: str, config: AgentConfig) -> Any:
     """Shapes and dtypes of the network parameters `config` builds (no arrays are allocated)."""
-    algo = _algorithm(agent)
+    algo = algorithm(agent)
     return jax.eval_shape(lambda key: algo.params(algo.init(config, key)), jax.random.key(0))
 
 
@@ -68,7 +70,7 @@ class SavedPolicy:
     def policy(self, num_envs: int = 1) -> Policy:
         """The greedy `(act, carry)` for a batch of `num_envs` envs (recurrent carries are sized to it)."""
         config = self.config.replace(eval_episodes=int(num_envs))
-        return _algorithm(self.agent).greedy(config, self.params)
+        return algorithm(self.agent).greedy(config, self.params)
 
     def evaluate(self, key: jax.Array, num_episodes: int = 10, **changes: Any) -> dict[str, float]:
         """Mean costed return, raw return, length and measurements over `num_episodes` greedy test episodes on
@@ -85,7 +87,7 @@ class SavedPolicy:
 @partial(jax.jit, static_argnames=("agent", "num_episodes"))
 def _evaluate(agent: str, config: AgentConfig, params: Any, key: jax.Array, num_episodes: int):
     env, env_params, max_steps = config.make_env()
-    greedy = _algorithm(agent).greedy(config.replace(eval_episodes=num_episodes), params)
+    greedy = algorithm(agent).greedy(config.replace(eval_episodes=num_episodes), params)
     return evaluate(env, env_params, max_steps, greedy, key, num_episodes)
 
 
@@ -114,7 +116,7 @@ class Actor:
 
 def save_policy(path: str | Path, config: AgentConfig, params: Any, info: dict[str, Any] | None = None) -> Path:
     """Write `params` of the agent that `config` configures to `path` (atomically); returns the path."""
-    agent = _agent_of(config)
+    agent = agent_of(config)
     path = Path(path)
     payload = {
         "format": FORMAT,
@@ -142,7 +144,7 @@ def load_policy(path: str | Path) -> SavedPolicy:
         if payload.get("version") != VERSION:
             raise ValueError(f"version {payload.get('version')!r}; this amjax reads version {VERSION}")
         agent = payload["agent"]
-        config = _algorithm(agent).config_type.from_dict(json.loads(payload["config"]))
+        config = algorithm(agent).config_type.from_dict(json.loads(payload["config"]))
         info = json.loads(payload["info"])
         stored = payload["params"]
     except Exception as error:  # truncated bytes, wrong keys, bad JSON, unknown agent or field
@@ -163,4 +165,6 @@ def load_policy(path: str | Path) -> SavedPolicy:
     return SavedPolicy(agent, config, jax.tree.map(jnp.asarray, params), info)
 
 
-__all__ = ["Actor", "PolicyFileError", "SavedPolicy", "load_policy", "params_template", "save_policy"]
+__all__ = [
+    "Actor", "PolicyFileError", "SavedPolicy", "agent_of", "algorithm", "load_policy", "params_template", "save_policy",
+]

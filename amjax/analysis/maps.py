@@ -143,12 +143,9 @@ def record_agent(config: AgentConfig, params: Any, key: jax.Array, num_episodes:
     `RunState.algo.params` (the last) from `ppo.train(config, key)`, or a loaded `SavedPolicy.params`. Configs
     that differ only in traced fields (the cost among them) share one compiled program.
     """
-    from amjax.agents import ALGORITHMS
+    from amjax.agents.saved import agent_of
 
-    names = [name for name, algo in ALGORITHMS.items() if type(config) is algo.config_type]
-    if not names:
-        raise TypeError(f"config: no registered algorithm uses {type(config).__name__}")
-    return _to_map(_record_agent(names[0], config, params, key, int(num_episodes)))
+    return _to_map(_record_agent(agent_of(config), config, params, key, int(num_episodes)))
 
 
 def plot_measurement_map(

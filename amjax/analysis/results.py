@@ -147,11 +147,9 @@ def agent_config(metadata: dict[str, Any], agent: str, env: str | None = None, *
     hyperparameters); a swept traced field takes its first value. `env` picks among the sweep's envs (default:
     the first). Use it to retrain one configuration, e.g. to draw its measurement map.
     """
-    from amjax.agents import ALGORITHMS
+    from amjax.agents.saved import algorithm
 
-    if agent not in ALGORITHMS:
-        raise ValueError(f"agent: unknown agent {agent!r}; allowed values: {', '.join(sorted(ALGORITHMS))}")
-    config_type = ALGORITHMS[agent].config_type
+    config_type = algorithm(agent).config_type
     spec = metadata["spec"]
     env = spec["envs"][0] if env is None else env
     stored = [
