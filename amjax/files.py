@@ -2,17 +2,33 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
+
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory locks; folders are then not guarded against a second writer
+    fcntl = None
+
+PARTIAL_SUFFIX = ".partial"
+
+
+class FolderBusyError(RuntimeError):
+    """Another live process is writing to the same output folder."""
 
 
 def atomic_write(path: Path, write: Callable[[str], None]) -> None:
-    """Call `write(tmp_path)` then rename over `path`: readers see the old file or the new one, never half."""
+    """Call `write(tmp_path)` then rename over `path`: readers see the old file or the new one, never half.
+
+    The temporary file is `.<name>.<random>.partial` beside `path`; a process killed mid-write (SIGKILL, power
+    loss) leaves it behind, and `remove_partial_writes` clears it on the next run.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=PARTIAL_SUFFIX, dir=path.parent)
     os.close(fd)
     try:
         write(tmp)
@@ -20,3 +36,37 @@ def atomic_write(path: Path, write: Callable[[str], None]) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def remove_partial_writes(folder: Path, recursive: bool = True) -> list[Path]:
+    """Delete the temporary files that interrupted `atomic_write` calls left in `folder` (and its subfolders
+    if `recursive`); returns them. Only safe while no other process writes there (hold `folder_lock`)."""
+    pattern = f".*{PARTIAL_SUFFIX}"
+    folder = Path(folder)
+    leftovers = sorted(folder.rglob(pattern) if recursive else folder.glob(pattern)) if folder.is_dir() else []
+    for leftover in leftovers:
+        leftover.unlink(missing_ok=True)
+    return leftovers
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path, argument: str = "out") -> Iterator[None]:
+    """Hold an exclusive lock on `folder` (created if needed) for the block; the operating system releases it
+    when the process ends, however it ends. Raises FolderBusyError naming `argument` if another process holds it."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    if fcntl is None:
+        yield
+        return
+    with open(folder / ".lock", "a+") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise FolderBusyError(
+                f"{argument}: {folder} is being written by another running process; wait for it to finish "
+                "or choose another folder"
+            ) from None
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)

@@ -16,7 +16,7 @@ import pandas as pd
 
 from amjax.agents import ALGORITHMS
 from amjax.envs.registry import registered_envs
-from amjax.sweep import SweepMismatchError, SweepSpec, run_sweep
+from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, run_sweep
 from amjax.sweep.grid import expand
 from train import replicate, report
 from train.presets import PRESETS
@@ -212,7 +212,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(str(error))  # exits with status 2
     try:
         result = run_sweep(spec, args.out, max_batch=max_batch, progress=not args.no_progress, loggers=loggers)
-    except SweepMismatchError as error:
+    except (SweepMismatchError, FolderBusyError) as error:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return 2
     print()

@@ -16,6 +16,7 @@ from typing import Any
 
 import pandas as pd
 
+from amjax.files import atomic_write, folder_lock, remove_partial_writes
 from train.presets import REPLICATE_AGENTS, REPLICATE_BUDGETS, replicate_specs
 
 
@@ -66,9 +67,7 @@ def _index(out: Path, timings: dict[str, float], reports: dict[str, Path]) -> Pa
 
 def run(args: argparse.Namespace, error: Any) -> int:
     """Run the replication `args` describe; `error(message)` reports bad flags (exits 2)."""
-    from amjax.analysis import write_report
-    from amjax.files import atomic_write
-    from amjax.sweep import SweepMismatchError, run_sweep
+    from amjax.sweep import FolderBusyError, SweepMismatchError
     from amjax.sweep.grid import expand
 
     seeds = (2 if args.quick else 10) if args.seeds is None else args.seeds
@@ -86,23 +85,34 @@ def run(args: argparse.Namespace, error: Any) -> int:
     except (ValueError, TypeError, ImportError) as problem:
         error(str(problem))
     out = Path(args.out)
+    try:
+        with folder_lock(out):
+            remove_partial_writes(out, recursive=False)  # each sweep folder cleans its own
+            index = _replicate(specs, out, args)
+    except (SweepMismatchError, FolderBusyError) as problem:
+        print(f"python -m train replicate: error: {problem}", file=sys.stderr)
+        return 2
+    print(f"\nReplication report: {index}")
+    return 0
+
+
+def _replicate(specs: dict[str, Any], out: Path, args: argparse.Namespace) -> Path:
+    """Run (or resume) each environment's sweep and report, then write the joint report; returns its path."""
+    from amjax.analysis import write_report
+    from amjax.sweep import run_sweep
+    from train.cli import make_loggers
+
     timings: dict[str, float] = {}
     reports: dict[str, Path] = {}
     timing_path = out / "wall_times.json"
     for env, spec in specs.items():
         start = time.monotonic()
-        try:
-            run_sweep(spec, out / env, max_batch=args.max_batch, progress=not args.no_progress,
-                      loggers=make_loggers(args, str(out / env)))
-        except SweepMismatchError as problem:
-            print(f"python -m train replicate: error: {problem}", file=sys.stderr)
-            return 2
+        run_sweep(spec, out / env, max_batch=args.max_batch, progress=not args.no_progress,
+                  loggers=make_loggers(args, str(out / env)))
         elapsed = time.monotonic() - start
         stored = json.loads(timing_path.read_text()) if timing_path.exists() else {}
         timings = {**stored, env: round(stored.get(env, 0.0) + elapsed, 1)}  # summed over resumed invocations
         atomic_write(timing_path, lambda tmp, t=timings: Path(tmp).write_text(json.dumps(t, indent=2) + "\n"))
         reports[env] = write_report(out / env, maps=not args.no_maps)
         print(f"{env}: {elapsed / 60:.1f} min; report {reports[env]}")
-    index = _index(out, timings, reports)
-    print(f"\nReplication report: {index}")
-    return 0
+    return _index(out, timings, reports)

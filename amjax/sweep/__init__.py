@@ -1,9 +1,11 @@
 """Sweeps: grids of configurations trained in compiled vmapped batches, with results, summaries and resume."""
 
+from amjax.files import FolderBusyError
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 from amjax.sweep.runner import SweepMismatchError, SweepResult, load_sweep_policy, policy_path, run_sweep
 
 __all__ = [
+    "FolderBusyError",
     "RunConfig",
     "SweepMismatchError",
     "SweepResult",

@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 
 from amjax.agents import ALGORITHMS, Algorithm, EvalRow, init_run, run_evals, stack_configs
 from amjax.agents.saved import SavedPolicy, load_policy, save_policy
+from amjax.files import folder_lock, remove_partial_writes
 from amjax.sweep import storage
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 from amjax.sweep.loggers import RunLogger
@@ -159,6 +160,76 @@ def _cell(value: Any) -> Any:
     return "x".join(map(str, value)) if isinstance(value, list | tuple) else value
 
 
+def _claim_folder(out: Path, spec: SweepSpec, runs: Sequence[RunConfig]) -> None:
+    """Write the sweep's metadata to a new folder, or check that an existing folder holds the same sweep."""
+    meta_path = out / "metadata.json"
+    if meta_path.exists():
+        if json.loads(meta_path.read_text()).get("spec") != spec.to_json():
+            raise SweepMismatchError(
+                f"out: {out} holds a different sweep (see its metadata.json); choose another folder"
+            )
+    else:
+        storage.write_json(
+            meta_path,
+            {"spec": spec.to_json(), "agent_configs": _group_configs(runs), **storage.environment_info()},
+        )
+
+
+def _train_batch(
+    batch: _Batch,
+    out: Path,
+    results: pd.DataFrame | None,
+    hyper_columns: list[str],
+    bar: tqdm,
+    *,
+    target_chunks: int,
+    checkpoint_every_s: float,
+    save_policies: bool,
+    on_chunk: Callable[[pd.DataFrame], None] | None,
+    loggers: Sequence[RunLogger],
+) -> pd.DataFrame | None:
+    """Train (or resume) one batch chunk by chunk, writing rows after every chunk; returns the results table."""
+    config0 = batch.runs[0].config
+    num_evals = config0.num_evals
+    chunk_evals = _chunk_evals(num_evals, target_chunks)
+    ckpt_path = out / "checkpoints" / f"{batch.name}.msgpack"
+    init, chunk = _compiled(batch.algo, chunk_evals)
+    configs, keys = batch.stacked()
+    states = init(configs, keys)
+    evals_done = 0
+    if ckpt_path.exists():
+        states, evals_done = storage.load_checkpoint(ckpt_path, states)
+    # Plain (strongly typed) arrays, fresh or restored alike, so both hit one compiled chunk program.
+    states = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), states)
+    bar.update(len(batch.runs) * evals_done * config0.eval_every)
+    label = f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs)"
+    bar.set_description(f"{label}, compiling" if evals_done < num_evals else label)
+    last_checkpoint = time.monotonic()
+    while evals_done < num_evals:
+        start = time.monotonic()
+        states, rows = chunk(configs, states)
+        rows = jax.device_get(rows)
+        evals_done += chunk_evals
+        new_rows = _rows(batch, rows, hyper_columns)
+        results = storage.merge_rows(results, new_rows)
+        storage.write_table(out / "results", results)
+        for logger in loggers:
+            logger.log(new_rows)
+        if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
+            if save_policies:
+                _save_policies(out, batch, states, evals_done, results)
+            storage.save_checkpoint(ckpt_path, states, evals_done)
+            last_checkpoint = time.monotonic()
+        steps = len(batch.runs) * chunk_evals * config0.eval_every
+        best = np.nanmedian(np.asarray(states.best_return)[: len(batch.runs)])
+        bar.set_postfix({"steps/s": f"{steps / (time.monotonic() - start):.3g}", "median best": f"{best:.1f}"})
+        bar.set_description(label)
+        bar.update(steps)
+        if on_chunk is not None:
+            on_chunk(results)
+    return results
+
+
 def run_sweep(
     spec: SweepSpec,
     out: str | Path,
@@ -185,77 +256,35 @@ def run_sweep(
         every checkpoint; load one with `load_sweep_policy(out, config_id)`).
       loggers: also send each chunk's new rows to these (e.g. `TensorBoardLogger(out / "tensorboard")`,
         `WandbLogger(project, out)`); they are closed when the sweep ends or stops.
+
+    Raises:
+      SweepMismatchError: `out` holds a different sweep.
+      FolderBusyError: another running process is writing to `out`.
     """
     runs = expand(spec)  # validates everything before touching the disk
     out = Path(out)
-    meta_path = out / "metadata.json"
-    if meta_path.exists():
-        stored = json.loads(meta_path.read_text()).get("spec")
-        if stored != spec.to_json():
-            raise SweepMismatchError(
-                f"out: {out} holds a different sweep (see its metadata.json); choose another folder"
-            )
-    else:
-        storage.write_json(
-            meta_path,
-            {"spec": spec.to_json(), "agent_configs": _group_configs(runs), **storage.environment_info()},
-        )
-
     hyper_columns = sorted({k for r in runs for k in r.hyperparams})
-    results = storage.read_table(out / "results")
-    batches = _batches(runs, max_batch)
-    total_steps = len(runs) * spec.total_timesteps
-    bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
-    try:
-        for batch in batches:
-            config0 = batch.runs[0].config
-            num_evals = config0.num_evals
-            chunk_evals = _chunk_evals(num_evals, target_chunks)
-            ckpt_path = out / "checkpoints" / f"{batch.name}.msgpack"
-            init, chunk = _compiled(batch.algo, chunk_evals)
-            configs, keys = batch.stacked()
-            states = init(configs, keys)
-            evals_done = 0
-            if ckpt_path.exists():
-                states, evals_done = storage.load_checkpoint(ckpt_path, states)
-            # Plain (strongly typed) arrays, fresh or restored alike, so both hit one compiled chunk program.
-            states = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), states)
-            bar.update(len(batch.runs) * evals_done * config0.eval_every)
-            label = f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs)"
-            bar.set_description(f"{label}, compiling" if evals_done < num_evals else label)
-            last_checkpoint = time.monotonic()
-            while evals_done < num_evals:
-                start = time.monotonic()
-                states, rows = chunk(configs, states)
-                rows = jax.device_get(rows)
-                evals_done += chunk_evals
-                new_rows = _rows(batch, rows, hyper_columns)
-                results = storage.merge_rows(results, new_rows)
-                storage.write_table(out / "results", results)
-                for logger in loggers:
-                    logger.log(new_rows)
-                if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
-                    if save_policies:
-                        _save_policies(out, batch, states, evals_done, results)
-                    storage.save_checkpoint(ckpt_path, states, evals_done)
-                    last_checkpoint = time.monotonic()
-                steps = len(batch.runs) * chunk_evals * config0.eval_every
-                best = np.nanmedian(np.asarray(states.best_return)[: len(batch.runs)])
-                bar.set_postfix(
-                    {"steps/s": f"{steps / (time.monotonic() - start):.3g}", "median best": f"{best:.1f}"}
+    with folder_lock(out):  # one writer per folder; the lock dies with the process, however it dies
+        remove_partial_writes(out)  # temporary files of writes that a killed run left unfinished
+        _claim_folder(out, spec, runs)
+        results = storage.read_table(out / "results")
+        total_steps = len(runs) * spec.total_timesteps
+        bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
+        try:
+            for batch in _batches(runs, max_batch):
+                results = _train_batch(
+                    batch, out, results, hyper_columns, bar, target_chunks=target_chunks,
+                    checkpoint_every_s=checkpoint_every_s, save_policies=save_policies, on_chunk=on_chunk,
+                    loggers=loggers,
                 )
-                bar.set_description(label)
-                bar.update(steps)
-                if on_chunk is not None:
-                    on_chunk(results)
-    finally:
-        bar.close()
-        for logger in loggers:
-            logger.close()
-    if results is None:
-        results = pd.DataFrame()
-    summary = storage.summarize(results, hyper_columns)
-    table = storage.seed_table(summary, hyper_columns)
-    storage.write_table(out / "summary", summary)
-    storage.write_table(out / "seed_summary", table)
+        finally:
+            bar.close()
+            for logger in loggers:
+                logger.close()
+        if results is None:
+            results = pd.DataFrame()
+        summary = storage.summarize(results, hyper_columns)
+        table = storage.seed_table(summary, hyper_columns)
+        storage.write_table(out / "summary", summary)
+        storage.write_table(out / "seed_summary", table)
     return SweepResult(out, results, summary, table)

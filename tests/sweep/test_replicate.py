@@ -7,6 +7,7 @@ import json
 import pandas as pd
 import pytest
 
+from amjax.files import folder_lock
 from train import presets
 from train.cli import main
 
@@ -61,3 +62,12 @@ def test_bad_flags_exit_2_without_output(tmp_path, capsys, flags, message):
         main(["replicate", "--out", str(tmp_path / "out"), *flags])
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_folder_in_use_is_refused(tmp_path, capsys):
+    out = tmp_path / "rep"
+    with folder_lock(out):  # as a second, live replicate process would hold it
+        code = main(["replicate", "--quick", "--env", "CartPole-v0", "--agent", "dqn", "--out", str(out),
+                     "--no-progress", "--no-maps"])
+    assert code == 2 and "another running process" in capsys.readouterr().err
+    assert [p.name for p in out.iterdir()] == [".lock"]  # nothing written

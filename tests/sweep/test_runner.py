@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -13,7 +14,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from amjax.sweep import SweepMismatchError, SweepSpec, expand, group_runs, run_sweep
+from amjax.files import atomic_write, folder_lock
+from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, expand, group_runs, run_sweep
 from amjax.sweep.storage import load_checkpoint, save_checkpoint, seed_table, summarize
 from train.cli import main
 
@@ -154,7 +156,45 @@ def test_sigkill_then_rerun_resumes(tmp_path):
     results = pd.read_parquet(out / "results.parquet")
     assert len(results) == 2 * 8 and not results.duplicated(["config_id", "env_steps"]).any()
     assert "best costed reward" in finished.stdout
-    assert not list(out.rglob(".*.parquet.*"))  # no temporary files left behind
+    assert not list(out.rglob(".*.partial"))  # temporary files of a write the kill cut short are cleared
+
+
+def test_failed_write_keeps_the_old_file(tmp_path):
+    path = tmp_path / "table.csv"
+    path.write_text("old")
+
+    def fail(tmp):
+        Path(tmp).write_text("half")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        atomic_write(path, fail)
+    assert path.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["table.csv"]
+
+
+def test_rerun_clears_partial_writes_of_a_killed_run(tmp_path, full_run):
+    out = shutil.copytree(full_run.out, tmp_path / "run")
+    leftovers = [out / ".results.parquet.k9x2.partial", out / "checkpoints" / ".ppo-x.msgpack.a1b2.partial"]
+    for leftover in leftovers:
+        leftover.write_bytes(b"half a file")
+    kept = out / ".notes.txt"  # a dotfile of the user's own, not ours
+    kept.write_text("mine")
+    rerun = run_sweep(TINY, out, progress=False, target_chunks=4)
+    assert not any(p.exists() for p in leftovers) and kept.read_text() == "mine"
+    pd.testing.assert_frame_equal(rerun.table, full_run.table)
+
+
+def test_folder_busy_with_another_process_is_refused(tmp_path, full_run, capsys):
+    out = shutil.copytree(full_run.out, tmp_path / "run")
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    with folder_lock(out):  # as a second, live process would hold it
+        with pytest.raises(FolderBusyError, match="out: .* another running process"):
+            run_sweep(TINY, out, progress=False)
+        code = main(["sweep", "--agent", "ppo", "--cost", "0.5", "--seeds", "1", "--steps", "4096",
+                     "--eval-every", "1024", "--out", str(out), "--no-progress"])
+        assert code == 2 and "another running process" in capsys.readouterr().err
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before  # nothing written
+    run_sweep(TINY, out, progress=False, target_chunks=4)  # the lock is gone with its holder
 
 
 def test_folder_with_another_sweep_is_refused(tmp_path, full_run, capsys):
