@@ -144,6 +144,7 @@ def _run_amjax(case: dict[str, Any]) -> dict[str, Any]:
     import numpy as np
 
     from amjax.agents import ALGORITHMS, stack_configs
+    from amjax.sweep.devices import config_sharding, sweep_devices
     from amjax.sweep.runner import _chunk_evals, _compiled
 
     algo = ALGORITHMS[case["agent"]]
@@ -152,18 +153,26 @@ def _run_amjax(case: dict[str, Any]) -> dict[str, Any]:
     keys = jnp.stack([jax.random.PRNGKey(seed) for seed in range(case["configs"])])
     num_evals = configs[0].num_evals
     chunk_evals = _chunk_evals(num_evals, case["target_chunks"])
-    init, chunk = _compiled(algo, chunk_evals)
+    devices = sweep_devices()
+    if case["configs"] % len(devices):
+        devices = devices[:1]  # the runner would pad the batch; the benchmark keeps the sizes it names
+    init, chunk = _compiled(algo, chunk_evals, tuple(devices))
+    sharding = config_sharding(devices)
     baseline = _current_rss_mib()
 
     start = time.perf_counter()
     init_compiled = init.lower(stacked, keys).compile()
-    chunk_compiled = chunk.lower(stacked, jax.eval_shape(init, stacked, keys)).compile()
+    states_shape = jax.eval_shape(init, stacked, keys)
+    chunk_compiled = chunk.lower(
+        *jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), (stacked, states_shape))
+    ).compile()
     compile_s = time.perf_counter() - start
+    stacked = jax.device_put(stacked, sharding)
 
     def run():
         states = init_compiled(stacked, keys)
-        # As the runner does (fresh or restored states alike): plain arrays through NumPy, a host round trip.
-        states = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), states)
+        # As the runner does (fresh or restored states alike): a host round trip, then split over the devices.
+        states = jax.device_put(jax.device_get(states), sharding)
         last = None
         for _ in range(num_evals // chunk_evals):
             states, rows = chunk_compiled(stacked, states)  # states are donated, as in the runner
@@ -174,6 +183,7 @@ def _run_amjax(case: dict[str, Any]) -> dict[str, Any]:
     timed = _timed(run, case["repeats"])
     eval_return = timed.pop("out")
     return {
+        "devices": len(devices),
         "compile_s": compile_s,
         **timed,
         "eval_return": eval_return,
@@ -295,6 +305,7 @@ def build_cases(args: argparse.Namespace) -> list[dict[str, Any]]:
         "target_chunks": args.target_chunks,
         "sb3_threads": args.sb3_threads,
         "repeats": args.repeats,
+        "cores": args.cores,
     }
     cases = []
     for agent in args.agents:
@@ -368,6 +379,10 @@ def build_cases(args: argparse.Namespace) -> list[dict[str, Any]]:
 
 def run_case(case: dict[str, Any], timeout: float) -> dict[str, Any]:
     pythonpath = os.pathsep.join(filter(None, [str(HERE.parent), os.environ.get("PYTHONPATH")]))
+    # CPU devices: amjax takes one per core on import unless told (--cores); the plain reference runs on one.
+    devices = {"JAX_NUM_CPU_DEVICES": "1"} if not case["impl"].startswith("amjax") else (
+        {"JAX_NUM_CPU_DEVICES": str(case["cores"])} if case["cores"] else {}
+    )
     start = time.perf_counter()
     try:
         proc = subprocess.run(
@@ -375,7 +390,7 @@ def run_case(case: dict[str, Any], timeout: float) -> dict[str, Any]:
             capture_output=True,
             text=True,
             timeout=timeout,
-            env=dict(os.environ, PYTHONPATH=pythonpath),
+            env=dict(os.environ, PYTHONPATH=pythonpath, **devices),
             cwd=str(HERE.parent),
         )
     except subprocess.TimeoutExpired:
@@ -655,6 +670,9 @@ def main() -> None:
         "(1:204800,16:51200); rounded to a multiple of evals x steps per update "
         "(default: min(max, max(min, budget / configs)), see STEP_RULES)",
     )
+    parser.add_argument("--cores", type=int, default=None,
+                        help="CPU devices amjax spreads its configurations over (default: one per usable core, "
+                        "as amjax does; the plain reference always runs as written, on one device)")
     parser.add_argument("--evals", type=int, default=5, help="evaluations per run (default 5)")
     parser.add_argument("--eval-episodes", type=int, default=10, help="test episodes per evaluation (default 10)")
     parser.add_argument("--target-chunks", type=int, default=10, help="the sweep runner's target_chunks (default 10)")

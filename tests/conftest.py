@@ -13,6 +13,11 @@ from typing import Any, NamedTuple
 import jax
 import pytest
 
+# At least two CPU devices, so that the sweep runner's sharded path (`amjax.sweep.devices`) is what the tests run
+# even on a one-core machine; amjax itself asks for one device per core when imported (below), as users get it.
+jax.config.update("jax_num_cpu_devices", max(2, len(__import__("os").sched_getaffinity(0))))
+import amjax  # noqa: E402, F401  (before any test module imports gymnax, which starts JAX's backend)
+
 
 class Rollout(NamedTuple):
     """A reset followed by T steps (NumPy arrays, leading axis T for the step outputs)."""
@@ -67,11 +72,17 @@ def scan_steps_fn():
 
 
 @jax.jit
-def _inner_keys(step_keys):
+def _split_first(step_keys):
     return jax.vmap(lambda key: jax.random.split(key)[0])(step_keys)
+
+
+def _inner_keys(step_keys, mode: str = "last"):
+    """The keys `ActiveMeasure.step` passes to its inner env: the key itself in mode "last" (no view noise to
+    draw), else `split(key)[0]`."""
+    return step_keys if mode == "last" else _split_first(step_keys)
 
 
 @pytest.fixture(scope="session")
 def inner_keys():
-    """The keys `ActiveMeasure.step` passes to its inner env for each of `step_keys`: `split(key)[0]`."""
+    """`inner_keys(step_keys, mode="last")`: the keys `ActiveMeasure.step` passes to its inner env."""
     return _inner_keys

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -100,19 +99,20 @@ def _replicate(specs: dict[str, Any], out: Path, args: argparse.Namespace) -> Pa
     """Run (or resume) each environment's sweep and report, then write the joint report; returns its path."""
     from amjax.analysis import write_report
     from amjax.sweep import run_sweep
+    from amjax.sweep.storage import WallTime
     from train.cli import make_loggers
 
     timings: dict[str, float] = {}
     reports: dict[str, Path] = {}
-    timing_path = out / "wall_times.json"
     for env, spec in specs.items():
-        start = time.monotonic()
         run_sweep(spec, out / env, max_batch=args.max_batch, progress=not args.no_progress,
                   loggers=make_loggers(args, str(out / env)))
-        elapsed = time.monotonic() - start
-        stored = json.loads(timing_path.read_text()) if timing_path.exists() else {}
-        timings = {**stored, env: round(stored.get(env, 0.0) + elapsed, 1)}  # summed over resumed invocations
-        atomic_write(timing_path, lambda tmp, t=timings: Path(tmp).write_text(json.dumps(t, indent=2) + "\n"))
+        wall_time = WallTime(out / env / "wall_time.json", new_invocation=False)
         reports[env] = write_report(out / env, maps=not args.no_maps)
-        print(f"{env}: {elapsed / 60:.1f} min; report {reports[env]}")
+        # The folder's account: training over every invocation (killed ones included) + reports.
+        timings[env] = wall_time.save()
+        print(f"{env}: {timings[env] / 60:.1f} min in all; report {reports[env]}")
+        path = out / "wall_times.json"
+        text = json.dumps({**(json.loads(path.read_text()) if path.exists() else {}), **timings}, indent=2)
+        atomic_write(path, lambda tmp, text=text: Path(tmp).write_text(text + "\n"))
     return _index(out, timings, reports)

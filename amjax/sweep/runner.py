@@ -28,6 +28,7 @@ from amjax.agents import ALGORITHMS, Algorithm, EvalRow, init_run, run_evals, st
 from amjax.agents.saved import SavedPolicy, load_policy, save_policy
 from amjax.files import folder_lock, remove_partial_writes
 from amjax.sweep import storage
+from amjax.sweep.devices import config_sharding, shard_configs, sweep_devices
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 from amjax.sweep.loggers import RunLogger
 
@@ -66,30 +67,46 @@ class _Batch:
         keys = jnp.stack([jax.random.PRNGKey(r.seed) for r in padded])
         return configs, keys
 
+    def pad(self, tree: Any) -> Any:
+        """Rows of the real configurations, padded to the batch size with copies of the last one."""
+        extra = self.size - len(self.runs)
+        return jax.tree.map(lambda x: np.concatenate([x, np.repeat(x[-1:], extra, axis=0)]), tree)
 
-def _batches(runs: Sequence[RunConfig], max_batch: int) -> list[_Batch]:
+
+def _batches(runs: Sequence[RunConfig], max_batch: int, num_devices: int = 1) -> list[_Batch]:
+    """Each compiled group split into batches of at most `max_batch` configurations (then padded to a multiple
+    of `num_devices`, so every device gets an equal share)."""
     batches = []
     for group in group_runs(runs):
         algo = ALGORITHMS[group[0].agent]
         count = math.ceil(len(group) / max_batch)
-        size = math.ceil(len(group) / count)
+        per_batch = math.ceil(len(group) / count)
+        size = math.ceil(per_batch / num_devices) * num_devices
         for i in range(count):
-            part = group[i * size : (i + 1) * size]
+            part = group[i * per_batch : (i + 1) * per_batch]
             batches.append(_Batch(f"{group[0].agent}-{part[0].config_id}", algo, part, size))
     return batches
 
 
 @functools.cache
-def _compiled(algo: Algorithm, chunk_evals: int) -> tuple[Callable, Callable]:
+def _compiled(
+    algo: Algorithm, chunk_evals: int, devices: tuple[jax.Device, ...] | None = None
+) -> tuple[Callable, Callable]:
     """Jitted init and chunk functions of an algorithm; cached so reruns in one process reuse the compiled
-    programs (jax caches one per shape and static config)."""
+    programs (jax caches one per shape and static config). The chunk spreads the configurations over `devices`
+    (default: `sweep_devices()`); give it arguments placed with `config_sharding(devices)`."""
+    devices = list(devices or sweep_devices())
     # Initialisation runs configuration by configuration (lax.map), not vmapped: cheap, and it keeps batched
     # linear algebra out of network initialisation (the jaxlib CPU deadlock in the research notes).
     init = jax.jit(lambda configs, keys: jax.lax.map(lambda ck: init_run(algo, *ck), (configs, keys)))
-    chunk = jax.jit(
-        jax.vmap(lambda config, state: run_evals(algo, config, state, chunk_evals)), donate_argnums=1
-    )
+    batched_chunk = jax.vmap(lambda config, state: run_evals(algo, config, state, chunk_evals))
+    chunk = jax.jit(shard_configs(batched_chunk, devices), donate_argnums=1)
     return init, chunk
+
+
+def _real(batch: _Batch, tree: Any) -> Any:
+    """The rows of a batched pytree that belong to real (not padding) configurations."""
+    return jax.tree.map(lambda x: x[: len(batch.runs)], tree)
 
 
 def _rows(batch: _Batch, rows: EvalRow, hyper_columns: list[str]) -> pd.DataFrame:
@@ -187,20 +204,25 @@ def _train_batch(
     save_policies: bool,
     on_chunk: Callable[[pd.DataFrame], None] | None,
     loggers: Sequence[RunLogger],
+    devices: tuple[jax.Device, ...],
+    wall_time: storage.WallTime,
 ) -> pd.DataFrame | None:
     """Train (or resume) one batch chunk by chunk, writing rows after every chunk; returns the results table."""
     config0 = batch.runs[0].config
     num_evals = config0.num_evals
     chunk_evals = _chunk_evals(num_evals, target_chunks)
     ckpt_path = out / "checkpoints" / f"{batch.name}.msgpack"
-    init, chunk = _compiled(batch.algo, chunk_evals)
+    init, chunk = _compiled(batch.algo, chunk_evals, devices)
     configs, keys = batch.stacked()
-    states = init(configs, keys)
+    states = jax.device_get(init(configs, keys))
     evals_done = 0
-    if ckpt_path.exists():
-        states, evals_done = storage.load_checkpoint(ckpt_path, states)
-    # Plain (strongly typed) arrays, fresh or restored alike, so both hit one compiled chunk program.
-    states = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), states)
+    if ckpt_path.exists():  # it holds the real configurations' rows only, whatever the padding was
+        real_rows, evals_done = storage.load_checkpoint(ckpt_path, _real(batch, states))
+        states = batch.pad(real_rows)
+    # Plain (strongly typed) arrays, fresh or restored alike, so both hit one compiled chunk program, split over
+    # the devices as it expects.
+    sharding = config_sharding(list(devices))
+    configs, states = jax.device_put((configs, states), sharding)
     bar.update(len(batch.runs) * evals_done * config0.eval_every)
     label = f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs)"
     bar.set_description(f"{label}, compiling" if evals_done < num_evals else label)
@@ -213,12 +235,13 @@ def _train_batch(
         new_rows = _rows(batch, rows, hyper_columns)
         results = storage.merge_rows(results, new_rows)
         storage.write_table(out / "results", results)
+        wall_time.save()
         for logger in loggers:
             logger.log(new_rows)
         if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
             if save_policies:
                 _save_policies(out, batch, states, evals_done, results)
-            storage.save_checkpoint(ckpt_path, states, evals_done)
+            storage.save_checkpoint(ckpt_path, _real(batch, states), evals_done)
             last_checkpoint = time.monotonic()
         steps = len(batch.runs) * chunk_evals * config0.eval_every
         best = np.nanmedian(np.asarray(states.best_return)[: len(batch.runs)])
@@ -241,6 +264,7 @@ def run_sweep(
     on_chunk: Callable[[pd.DataFrame], None] | None = None,
     save_policies: bool = True,
     loggers: Sequence[RunLogger] = (),
+    devices: Sequence[jax.Device] | None = None,
 ) -> SweepResult:
     """Train every configuration of `spec`, writing results under `out`; resumes a sweep already there.
 
@@ -256,6 +280,8 @@ def run_sweep(
         every checkpoint; load one with `load_sweep_policy(out, config_id)`).
       loggers: also send each chunk's new rows to these (e.g. `TensorBoardLogger(out / "tensorboard")`,
         `WandbLogger(project, out)`); they are closed when the sweep ends or stops.
+      devices: the devices each batch's configurations are split over (default: `sweep_devices()`, every local
+        device: one per CPU core, see `amjax.cores`). Results do not depend on it; a sweep may resume on others.
 
     Raises:
       SweepMismatchError: `out` holds a different sweep.
@@ -264,18 +290,20 @@ def run_sweep(
     runs = expand(spec)  # validates everything before touching the disk
     out = Path(out)
     hyper_columns = sorted({k for r in runs for k in r.hyperparams})
+    devices = tuple(devices or sweep_devices())
     with folder_lock(out):  # one writer per folder; the lock dies with the process, however it dies
         remove_partial_writes(out)  # temporary files of writes that a killed run left unfinished
         _claim_folder(out, spec, runs)
+        wall_time = storage.WallTime(out / "wall_time.json")
         results = storage.read_table(out / "results")
         total_steps = len(runs) * spec.total_timesteps
         bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
         try:
-            for batch in _batches(runs, max_batch):
+            for batch in _batches(runs, max_batch, len(devices)):
                 results = _train_batch(
                     batch, out, results, hyper_columns, bar, target_chunks=target_chunks,
                     checkpoint_every_s=checkpoint_every_s, save_policies=save_policies, on_chunk=on_chunk,
-                    loggers=loggers,
+                    loggers=loggers, devices=devices, wall_time=wall_time,
                 )
         finally:
             bar.close()
@@ -287,4 +315,5 @@ def run_sweep(
         table = storage.seed_table(summary, hyper_columns)
         storage.write_table(out / "summary", summary)
         storage.write_table(out / "seed_summary", table)
+        wall_time.save()
     return SweepResult(out, results, summary, table)

@@ -14,6 +14,7 @@ import json
 import os
 import platform
 import subprocess
+import time
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
@@ -52,6 +53,29 @@ def merge_rows(old: pd.DataFrame | None, new: pd.DataFrame) -> pd.DataFrame:
 
 
 # -- checkpoints -----------------------------------------------------------------------------------------
+
+
+class WallTime:
+    """Seconds spent on a sweep folder over all its invocations, kept in `path` (JSON). `save()` after each
+    chunk, so a killed invocation counts up to its last chunk; `new_invocation=False` adds to the same count (e.g.
+    the time of writing its report)."""
+
+    def __init__(self, path: Path, new_invocation: bool = True):
+        self.path = path
+        stored = json.loads(path.read_text()) if path.exists() else {}
+        self.before = float(stored.get("seconds", 0.0))
+        self.invocations = int(stored.get("invocations", 0)) + int(new_invocation)
+        self.start = time.monotonic()
+
+    @property
+    def seconds(self) -> float:
+        return self.before + time.monotonic() - self.start
+
+    def save(self) -> float:
+        """Write the total so far; returns it (seconds, as written)."""
+        seconds = round(self.seconds, 1)
+        write_json(self.path, {"seconds": seconds, "invocations": self.invocations})
+        return seconds
 
 
 def save_checkpoint(path: Path, state: Any, evals_done: int) -> None:
@@ -104,6 +128,7 @@ def environment_info() -> dict[str, Any]:
         "python": platform.python_version(),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores",
         "jax_backend": jax.default_backend(),
+        "jax_devices": len(jax.local_devices()),  # the sweep's configurations are spread over these
     }
 
 

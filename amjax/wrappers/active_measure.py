@@ -9,6 +9,8 @@ by `mode`:
 - "noisy": the true observation + N(0, noise_std^2), clipped to the space's bounds.
 With `flag=True` a 1 (fresh) or 0 (stale) is appended to the observation. A reset, including the auto-reset inside
 `step`, counts as a free measurement of the first observation. The reward is `raw_reward - cost * measured`.
+Keys: in mode "last" `step` hands its key to the inner environment unchanged (always measuring is then exactly
+the plain environment under the same keys); the other modes split it into the inner env's key and the view's.
 
 `cost` and `noise_std` are leaves of `MeasureParams` (traced, vmappable); `mode`, `flag` and the inner environment
 are static (attributes of the wrapper object, which is a static argument of the jitted `reset`/`step`).
@@ -212,7 +214,10 @@ class ActiveMeasure(GymnaxWrapper):
         params: MeasureParams | None = None,
     ) -> tuple[jax.Array, MeasureState, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
         params = self.default_params if params is None else params
-        key_env, key_view = jax.random.split(key)
+        if self.mode == "last":  # the stale view needs no randomness: the inner env gets the key as it came
+            key_env = key_view = key
+        else:
+            key_env, key_view = jax.random.split(key)
         control, measured = self.split_action(action)
         obs, env_state, raw_reward, terminated, truncated, info = self._env.step(
             key_env, state.env_state, control, params.env_params

@@ -45,7 +45,9 @@ def test_replicate_runs_reports_and_resumes(tmp_path, monkeypatch, capsys):
     # A rerun finds everything done: no new rows, the wall time only grows.
     assert main(args) == 0
     pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "CartPole-v0" / "results.parquet"), results)
-    assert json.loads((tmp_path / "wall_times.json").read_text())["CartPole-v0"] >= first
+    again = json.loads((tmp_path / "wall_times.json").read_text())["CartPole-v0"]
+    assert again >= first
+    assert json.loads((tmp_path / "CartPole-v0" / "wall_time.json").read_text()) == {"seconds": again, "invocations": 2}
 
 
 @pytest.mark.parametrize(

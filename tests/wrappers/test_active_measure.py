@@ -1,7 +1,8 @@
 """The active-measure wrapper (`amjax.make` -> `ActiveMeasure` / `AlwaysMeasured`).
 
-Most checks compare the wrapper against the plain gymnax environment stepped with the key the wrapper hands it
-(`split(key)[0]`), or against a plain Python loop that applies the wrapper's rules to those true observations.
+Most checks compare the wrapper against the plain gymnax environment stepped with the key the wrapper hands it (the
+key itself in mode "last", `split(key)[0]` in the modes that draw a view), or against a plain Python loop that
+applies the wrapper's rules to those true observations.
 """
 
 from __future__ import annotations
@@ -33,9 +34,9 @@ def short_episodes(params: MeasureParams, max_steps: int = 5) -> MeasureParams:
 SHORT = short_episodes(CARTPOLE_PARAMS)
 
 
-def inner_rollout(rollout, inner_keys, wrapped_run, env, env_params, key, controls):
-    """The plain env driven with the same reset key and the keys the wrapper passed to it."""
-    return rollout(env, env_params, key, controls, step_keys=inner_keys(wrapped_run.step_keys))
+def inner_rollout(rollout, inner_keys, wrapped_run, env, env_params, key, controls, mode="last"):
+    """The plain env driven with the same reset key and the keys the wrapper (in `mode`) passed to it."""
+    return rollout(env, env_params, key, controls, step_keys=inner_keys(wrapped_run.step_keys, mode))
 
 
 # -- always measuring is the plain environment --------------------------------------------------------------
@@ -156,7 +157,7 @@ def test_box_action_env_measures_iff_first_entry_at_least_half(inner_keys):
         obs0, state = env.reset(jax.random.key(0), params)
         step = jax.vmap(env.step, in_axes=(None, None, 0, None))
         obs, _, reward, _, _, info = step(key, state, actions, params)
-        inner_key = jax.random.split(key)[0]
+        inner_key = key  # mode "last" passes its key to the inner env unchanged
         true_obs, *_ = inner.step(inner_key, state.env_state, torque[None], params.env_params)
         return obs0, obs, reward, info, true_obs
 
@@ -191,7 +192,9 @@ def hidden_views(rollout, inner_keys, env, params, num_rollouts: int):
     for i in range(num_rollouts):
         key = jax.random.key(1000 + i)
         run = rollout(env, params, key, jnp.asarray(controls[i]))
-        plain = inner_rollout(rollout, inner_keys, run, INNER_CARTPOLE, params.env_params, key, controls[i])
+        plain = inner_rollout(
+            rollout, inner_keys, run, INNER_CARTPOLE, params.env_params, key, controls[i], env.mode
+        )
         np.testing.assert_array_equal(run.info["final_observation"][:, -1], 0.0)
         views.append(run.info["final_observation"][:, :-1])
         truths.append(plain.info["final_observation"])
@@ -247,7 +250,7 @@ def test_final_observation_is_the_wrapped_pre_reset_observation(rollout, inner_k
     measure = actions >= 2
     key = jax.random.key(3)
     run = rollout(env, params, key, jnp.asarray(actions))
-    plain = inner_rollout(rollout, inner_keys, run, INNER_CARTPOLE, params.env_params, key, actions % 2)
+    plain = inner_rollout(rollout, inner_keys, run, INNER_CARTPOLE, params.env_params, key, actions % 2, env.mode)
     done = run.terminated | run.truncated
     final = run.info["final_observation"]
     assert done.sum() >= 8 and (done & measure).any() and (done & ~measure).any()
