@@ -100,7 +100,12 @@ def _compiled(
     # linear algebra out of network initialisation (the jaxlib CPU deadlock in the research notes).
     init = jax.jit(lambda configs, keys: jax.lax.map(lambda ck: init_run(algo, *ck), (configs, keys)))
     batched_chunk = jax.vmap(lambda config, state: run_evals(algo, config, state, chunk_evals))
-    chunk = jax.jit(shard_configs(batched_chunk, devices), donate_argnums=1)
+    # Shardings pinned on both sides, so the states a chunk returns (zero-size arrays included, which XLA would
+    # otherwise return replicated) are placed as the next chunk expects them.
+    sharding = config_sharding(devices)
+    chunk = jax.jit(
+        shard_configs(batched_chunk, devices), donate_argnums=1, in_shardings=sharding, out_shardings=sharding
+    )
     return init, chunk
 
 
