@@ -1,19 +1,21 @@
 """How long `python -m train replicate` takes on this machine, projected from short runs of its own batches.
 
-For each environment x agent of the replication grid it builds the replicate command's batch (the same 50
-configurations: 4 costs + vanilla x 10 seeds, the same hyperparameters, split over the same CPU devices), but with
-a short budget: two evaluation periods of `--probe-steps` env steps each. It times compilation and the second period
-(the first holds the replay warm-up), and projects the full batch as
+For each environment x agent of the replication grid it builds the replicate command's batches (the same
+configurations: 4 costs x 10 seeds in one, vanilla x 10 seeds in another, the same hyperparameters, split over the
+same CPU devices), but with a short budget: two evaluation periods of about `--probe-steps` env steps each. It
+times compilation and the second period (the first holds the replay warm-up), and projects each batch as
 
-    compile + configurations x budget / (env-steps/s of the second period).
+    compile + configurations x budget / (env-steps/s of the second period), summed over the batches.
 
-Evaluation is inside the timed period, so it is counted at the probe's (higher) evaluations-per-step ratio, but with
-untrained policies, whose episodes are short on CartPole and LunarLander (cheaper evaluations than trained ones).
+The evaluation is timed on its own and subtracted from the period, then counted once per evaluation of the real
+budget: `+ evaluations x evaluation time`. It is timed with untrained policies, whose test episodes are shorter than
+trained ones on CartPole (so evaluation is underestimated there) and longer on Acrobot (overestimated); the
+`eval len` column gives their mean length.
 Check the method against a measured run: `python -m train replicate --env CartPole-v0` writes its wall time to
 `OUT/wall_times.json`.
 
-    python benchmarks/replicate_time.py                                   # every env x agent (~10 min on 2 cores)
-    python benchmarks/replicate_time.py --env CartPole-v0 --agent drqn
+    python benchmarks/replicate_time.py                                   # every env x agent (~15 min on 2 cores)
+    python benchmarks/replicate_time.py --env Acrobot-v1 --agent drqn
 """
 
 from __future__ import annotations
@@ -21,22 +23,21 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from functools import partial
 
 import jax
 import numpy as np
 
 from amjax.agents import stack_configs
-from amjax.sweep.devices import config_sharding, sweep_devices
+from amjax.agents.training import evaluate
+from amjax.sweep.devices import config_sharding, shard_configs, sweep_devices
 from amjax.sweep.grid import expand
-from amjax.sweep.runner import _batches, _compiled
+from amjax.sweep.runner import _Batch, _batches, _compiled
 from train.presets import REPLICATE_AGENTS, REPLICATE_BUDGETS, replicate_specs
 
 
-def probe(env: str, agent: str, seeds: int, probe_steps: int) -> dict[str, float]:
-    """Compile time and steady env-steps/s of the replicate batch of (env, agent), and its projected time."""
-    spec = replicate_specs((env,), (agent,), seeds)[env]
-    devices = sweep_devices()
-    (batch,) = _batches(expand(spec), 1024, len(devices))
+def probe_batch(batch: _Batch, budget: int, probe_steps: int, devices: list) -> dict[str, float]:
+    """Compile time and steady env-steps/s of one batch, and its projected time at `budget` steps per config."""
     unit = batch.runs[0].config.steps_per_update()
     period = math.ceil(probe_steps / unit) * unit
     configs = [r.config.replace(total_timesteps=2 * period, eval_every=period).validate() for r in batch.runs]
@@ -53,13 +54,38 @@ def probe(env: str, agent: str, seeds: int, probe_steps: int) -> dict[str, float
     start = time.perf_counter()
     states, rows = chunk(stacked, states)
     jax.block_until_ready(rows)
-    rate = len(batch.runs) * period / (time.perf_counter() - start)  # padding configurations count as overhead
-    total_steps = len(batch.runs) * spec.total_timesteps
-    return {
-        "configs": len(batch.runs), "devices": len(devices), "probe_steps": period, "compile_s": compile_s,
-        "steps_per_s": rate, "total_steps": total_steps, "projected_s": compile_s + total_steps / rate,
-        "eval_return": float(np.median(np.asarray(rows.eval_return)[: len(batch.runs), -1])),
-    }
+    period_s = time.perf_counter() - start
+    # The evaluation alone (the same greedy test episodes the period ended with), so that training is projected at
+    # its own rate and evaluation at the replicate's count of evaluations, not at the probe's much higher ratio.
+    sharding = config_sharding(devices)
+    evaluation = jax.jit(shard_configs(jax.vmap(partial(_evaluation, batch.algo)), devices),
+                         in_shardings=sharding, out_shardings=sharding)
+    jax.block_until_ready(evaluation(stacked, states))
+    start = time.perf_counter()
+    lengths = jax.block_until_ready(evaluation(stacked, states))
+    eval_s = time.perf_counter() - start
+    rate = len(batch.runs) * period / max(period_s - eval_s, 1e-9)  # padding configurations count as overhead
+    steps = len(batch.runs) * budget
+    evals = budget // batch.runs[0].config.eval_every
+    return {"configs": len(batch.runs), "compile_s": compile_s, "steps_per_s": rate, "steps": steps,
+            "eval_s": eval_s, "eval_length": float(np.mean(np.asarray(lengths)[: len(batch.runs)])),
+            "projected_s": compile_s + steps / rate + evals * eval_s}
+
+
+def _evaluation(algo, config, state):
+    """Mean test-episode length of the greedy policy of `state`, as `run_evals` evaluates it."""
+    env, env_params, max_steps = config.make_env()
+    policy = algo.greedy(config, algo.params(state.algo))
+    key = jax.random.fold_in(state.key, state.evals_done)
+    return evaluate(env, env_params, max_steps, policy, key, config.eval_episodes).means()["length"]
+
+
+def probe(env: str, agent: str, seeds: int, probe_steps: int) -> list[dict[str, float]]:
+    """`probe_batch` for every batch (active-measure, vanilla) the replicate command trains for (env, agent)."""
+    spec = replicate_specs((env,), (agent,), seeds)[env]
+    devices = sweep_devices()
+    return [probe_batch(batch, spec.total_timesteps, probe_steps, devices)
+            for batch in _batches(expand(spec), 1024, len(devices))]
 
 
 def main() -> None:
@@ -73,15 +99,16 @@ def main() -> None:
     if unknown:
         parser.error(f"--env: {', '.join(unknown)}; allowed values: {', '.join(REPLICATE_BUDGETS)}")
     print(f"{len(sweep_devices())} CPU devices; probe: 2 periods of about {args.probe_steps:,} steps per config")
-    print(f"{'env':<16}{'agent':<7}{'configs':>8}{'compile s':>11}{'env-steps/s':>13}{'env steps':>14}"
-          f"{'projected':>11}")
+    print(f"{'env':<16}{'agent':<7}{'configs':>8}{'compile s':>11}{'train steps/s':>15}{'eval s':>8}"
+          f"{'eval len':>9}{'env steps':>14}{'projected':>11}")
     total = 0.0
     for env in args.env:
         for agent in args.agent:
-            r = probe(env, agent, args.seeds, args.probe_steps)
-            total += r["projected_s"]
-            print(f"{env:<16}{agent:<7}{r['configs']:>8}{r['compile_s']:>11.1f}{r['steps_per_s'] / 1e3:>12.1f}k"
-                  f"{r['total_steps']:>14,}{r['projected_s'] / 60:>9.1f} m", flush=True)
+            for r in probe(env, agent, args.seeds, args.probe_steps):
+                total += r["projected_s"]
+                print(f"{env:<16}{agent:<7}{r['configs']:>8}{r['compile_s']:>11.1f}{r['steps_per_s'] / 1e3:>14.1f}k"
+                      f"{r['eval_s']:>8.2f}{r['eval_length']:>9.0f}{r['steps']:>14,}{r['projected_s'] / 60:>9.1f} m",
+                      flush=True)
     print(f"projected total: {total / 3600:.2f} h (training and compilation; reports add about a minute per env)")
 
 
