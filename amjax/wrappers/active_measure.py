@@ -183,7 +183,11 @@ class ActiveMeasure(GymnaxWrapper):
         obs = jnp.asarray(obs, jnp.float32)
         if not self.flag:
             return obs
-        return jnp.append(obs, jnp.asarray(fresh, jnp.float32))
+        # Pad, then write the flag with a select: XLA fuses this with the surrounding selects, whereas a
+        # concatenate with a traced flag is a separate, unvectorised pass over a [batch, d + 1] array on CPU
+        # (it made a batch of wrapped CartPole steps 1.7x slower than the plain env).
+        is_flag = jnp.arange(obs.shape[0] + 1) == obs.shape[0]
+        return jnp.where(is_flag, jnp.asarray(fresh, jnp.float32), jnp.pad(obs, (0, 1)))
 
     def _unmeasured_view(
         self, key: jax.Array, last_obs: jax.Array, true_obs: jax.Array, params: MeasureParams
