@@ -50,6 +50,7 @@ IMPL_LABELS = {
     "reference-vanilla": "plain reference, vanilla env",
     "amjax-sb3": "amjax, SB3 DQN hyperparameters",
     "amjax-buffer": "amjax (buffer scan)",
+    "overhead": "amjax, active vs vanilla env interleaved",
     "sb3": "SB3",
 }
 # Steps per configuration: min(max, max(min, budget // configs)), rounded to a multiple of evals x steps per
@@ -138,7 +139,8 @@ def _costs(case: dict[str, Any]) -> list[float]:
     return [0.0 if case["vanilla"] else COSTS[i % len(COSTS)] for i in range(case["configs"])]
 
 
-def _run_amjax(case: dict[str, Any]) -> dict[str, Any]:
+def _build_amjax(case: dict[str, Any]) -> dict[str, Any]:
+    """Compile what the sweep runner compiles for the case; returns the compile time and a `run` that trains."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -158,7 +160,6 @@ def _run_amjax(case: dict[str, Any]) -> dict[str, Any]:
         devices = devices[:1]  # the runner would pad the batch; the benchmark keeps the sizes it names
     init, chunk = _compiled(algo, chunk_evals, tuple(devices))
     sharding = config_sharding(devices)
-    baseline = _current_rss_mib()
 
     start = time.perf_counter()
     init_compiled = init.lower(stacked, keys).compile()
@@ -182,15 +183,95 @@ def _run_amjax(case: dict[str, Any]) -> dict[str, Any]:
         jax.block_until_ready(states)
         return float(np.median(last))
 
-    timed = _timed(run, case["repeats"])
+    return {"devices": len(devices), "compile_s": compile_s, "run": run, "chunks": num_evals // chunk_evals}
+
+
+def _run_amjax(case: dict[str, Any]) -> dict[str, Any]:
+    baseline = _current_rss_mib()
+    built = _build_amjax(case)
+    timed = _timed(built.pop("run"), case["repeats"])
     eval_return = timed.pop("out")
+    return {**built, **timed, "eval_return": eval_return, "baseline_rss_mib": baseline}
+
+
+ENV_ONLY_ENVS, ENV_ONLY_STEPS = 2048, 256  # the env-only overhead rollout: envs x steps, random actions
+
+
+def _build_env_only(case: dict[str, Any]) -> Callable[[], Any]:
+    """A compiled rollout of ENV_ONLY_ENVS training envs (the agent config's own env stack, episode statistics
+    included) under uniformly random actions, every transition reduced into a checksum: the env alone."""
+    import jax
+
+    from amjax.agents.rollout import PRNG_IMPL, reset_envs, step_envs
+
+    env, params, _ = _agent_config(case, _costs(case)[0]).validate().make_env()
+    num_actions = env.action_space(params).n
+
+    @jax.jit
+    def rollout(key):
+        def step(carry, key):
+            batch, checksum = carry
+            key_action, key_step = jax.random.split(key)
+            action = jax.random.randint(key_action, (ENV_ONLY_ENVS,), 0, num_actions)
+            batch, t = step_envs(env, params, batch, action, key_step)
+            checksum += t.reward.sum() + t.next_obs.sum() + t.obs.sum() + t.episode.length.sum()
+            return (batch, checksum), None
+
+        batch = reset_envs(env, params, key, ENV_ONLY_ENVS)
+        (_, checksum), _ = jax.lax.scan(step, (batch, 0.0), jax.random.split(key, ENV_ONLY_STEPS))
+        return checksum
+
+    key = jax.random.key(0, impl=PRNG_IMPL)
+    compiled = rollout.lower(key).compile()
+    return lambda: compiled(key).block_until_ready()
+
+
+def _interleaved(runs: dict[bool, Callable[[], Any]], rounds: int) -> dict[bool, list[float]]:
+    """Wall times of each run, in alternation (a, b, b, a, ...), after one untimed run of each."""
+    times: dict[bool, list[float]] = {key: [] for key in runs}
+    for run in runs.values():
+        run()  # warm-up: first-run allocations stay out of the timings
+    for round_ in range(rounds):
+        for key in list(runs) if round_ % 2 == 0 else list(runs)[::-1]:
+            start = time.perf_counter()
+            runs[key]()
+            times[key].append(time.perf_counter() - start)
+    return times
+
+
+def _overhead_figures(active: list[float], vanilla: list[float]) -> dict[str, Any]:
+    import numpy as np
+
+    active_s, vanilla_s = np.asarray(active), np.asarray(vanilla)
     return {
-        "devices": len(devices),
-        "compile_s": compile_s,
-        **timed,
-        "eval_return": eval_return,
-        "chunks": num_evals // chunk_evals,
-        "baseline_rss_mib": baseline,
+        "min": float(active_s.min() / vanilla_s.min() - 1),
+        "median": float(np.median(active_s) / np.median(vanilla_s) - 1),
+        # Paired by round: the spread of the per-round ratio says how far to trust the two figures above.
+        "rounds": (active_s / vanilla_s - 1).tolist(),
+        "active_s": active,
+        "vanilla_s": vanilla,
+    }
+
+
+def _run_overhead(case: dict[str, Any]) -> dict[str, Any]:
+    """The wrapper's overhead with the machine's drift taken out: the active-measure and the vanilla-env
+    programs compiled in one process and timed in alternation, for training (the sweep runner's programs) and for
+    the env alone (a random-action rollout)."""
+    train = _interleaved({v: _build_amjax({**case, "vanilla": v})["run"] for v in (False, True)}, case["repeats"])
+    env = _interleaved({v: _build_env_only({**case, "vanilla": v}) for v in (False, True)}, case["repeats"])
+    return {
+        "run_s": float(min(train[False])),
+        "run_cpu_s": float("nan"),
+        "compile_s": float("nan"),
+        "eval_return": None,
+        "train": _overhead_figures(train[False], train[True]),
+        "env_only": {
+            **_overhead_figures(env[False], env[True]),
+            "envs": ENV_ONLY_ENVS,
+            "steps": ENV_ONLY_STEPS,
+            "active_steps_per_s": ENV_ONLY_ENVS * ENV_ONLY_STEPS / min(env[False]),
+            "vanilla_steps_per_s": ENV_ONLY_ENVS * ENV_ONLY_STEPS / min(env[True]),
+        },
     }
 
 
@@ -258,6 +339,8 @@ def run_child(case: dict[str, Any]) -> None:
         runner = _run_sb3
     elif case["impl"].startswith("reference"):
         runner = _run_reference
+    elif case["impl"] == "overhead":
+        runner = _run_overhead
     else:
         runner = _run_amjax
     result = runner(case)
@@ -363,6 +446,16 @@ def build_cases(args: argparse.Namespace) -> list[dict[str, Any]]:
             cases.append(
                 {"impl": "sb3", "agent": "ppo", "configs": 1, "steps": args.sb3_steps, "vanilla": True, **common}
             )
+    for agent in args.agents:
+        for size in args.overhead:
+            rule = rules[agent]
+            steps = _round_steps(min(rule["max"], max(rule["min"], rule["budget"] // size)), _steps_per_update(agent))
+            case = {"impl": "overhead", "agent": agent, "configs": size, "steps": steps, "vanilla": False, **common}
+            # Training only: one evaluation of one episode at the end, so the env and the learner are what is timed.
+            case.update(evals=1, eval_episodes=1, repeats=args.overhead_rounds)
+            if agent == "dqn":
+                case["buffer"] = args.buffer or _default_buffer(steps, _steps_per_update(agent))
+            cases.append(case)
     for buffer in args.buffer_scan:
         steps = _round_steps(args.buffer_scan_steps, args.evals * _steps_per_update("dqn"))
         cases.append(
@@ -483,6 +576,8 @@ HEADER = [
 def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
     rows = []
     for r in results:
+        if r["impl"] == "overhead":
+            continue  # reported as ratios: its run times are paired, not a throughput
         ok = r.get("status") == "ok"
         label = f"SB3 {r['agent'].upper()} (defaults)" if r["impl"] == "sb3" else IMPL_LABELS[r["impl"]]
         rows.append(
@@ -555,6 +650,17 @@ def ratio_lines(results: list[dict[str, Any]]) -> list[str]:
                 parts.append(f"compile amjax / reference = {am['compile_s'] / ref['compile_s']:.2f}x")
             if parts:
                 lines.append(f"{agent.upper()} x {size}: " + "; ".join(parts))
+    for r in results:
+        if r["impl"] == "overhead" and r.get("status") == "ok":
+            train, env = r["train"], r["env_only"]
+            lines.append(
+                f"{r['agent'].upper()} x {r['configs']}: active-measure overhead, interleaved in one process "
+                f"({len(train['rounds'])} runs each): training {train['min'] * 100:+.1f}% (fastest vs fastest), "
+                f"{train['median'] * 100:+.1f}% (median vs median), per round {min(train['rounds']) * 100:+.1f}% to "
+                f"{max(train['rounds']) * 100:+.1f}%; the env alone ({env['envs']:,} envs x {env['steps']} random "
+                f"steps: {_rate(env['active_steps_per_s'])} vs {_rate(env['vanilla_steps_per_s'])} steps/s) "
+                f"{env['min'] * 100:+.1f}% / {env['median'] * 100:+.1f}%"
+            )
     sb3_dqn, amjax_sb3 = _find(results, "sb3", "dqn"), _find(results, "amjax-sb3", "dqn")
     if sb3_dqn and amjax_sb3:
         n = amjax_sb3["configs"]
@@ -642,6 +748,16 @@ def note_lines(args: argparse.Namespace, results: list[dict[str, Any]]) -> list[
             + ". Both skip that work: the reference's lax.cond on its unbatched step counter, amjax's "
             "training.uniform_cond on its per-config counters (a real branch under vmap)."
         )
+    if any(r["impl"] == "overhead" for r in results):
+        notes.append(
+            "Wrapper overhead (interleaved): separate processes drift by a few percent between runs, as much as the "
+            "overhead itself, so it is also timed with both programs compiled in one process and run in alternation "
+            "(active, vanilla, vanilla, active, ...), after one untimed run of each: training only (one evaluation "
+            "of one episode at the end), and the env alone (the training env stack stepped under random actions, "
+            "every transition summed into a checksum). The vanilla env has 2 actions and 4 observations, the "
+            "active-measure one 4 and 5: the training figure includes the larger network and action distribution, "
+            "not only the wrapper's code; the env-alone figure is the wrapper's own cost."
+        )
     if any(r["impl"] == "sb3" for r in results):
         notes.append(
             "SB3 rows: Stable-Baselines3 defaults on Gymnasium CartPole-v1 (500-step episodes, no measure action), "
@@ -723,6 +839,13 @@ def main() -> None:
         "(e.g. 1000,10000,100000) to see whether the step cost grows with capacity",
     )
     parser.add_argument("--buffer-scan-configs", type=int, default=16)
+    parser.add_argument(
+        "--overhead",
+        default=None,
+        help="configuration counts at which to time the wrapper's overhead with the active-measure and vanilla "
+        "programs interleaved in one process, training only (default 256; quick 4; '' skips)",
+    )
+    parser.add_argument("--overhead-rounds", type=int, default=6, help="timed runs of each program (default 6)")
     parser.add_argument("--buffer-scan-steps", type=int, default=20_000)
     parser.add_argument("--timeout", type=float, default=900, help="seconds per case before it is abandoned")
     parser.add_argument("--markdown", default=None, help="also write the table and notes as markdown to this path")
@@ -744,6 +867,8 @@ def main() -> None:
             parser.error(f"--agents: unknown {agent!r}; allowed: ppo, dqn")
     args.sizes = [int(s) for s in (args.sizes or ("1,4" if args.quick else "1,16,256,1024")).split(",")]
     args.buffer_scan = [int(b) for b in args.buffer_scan.split(",") if b]
+    overhead = ("4" if args.quick else "256") if args.overhead is None else args.overhead
+    args.overhead = [int(s) for s in overhead.split(",") if s]
     if args.sb3 is None:
         try:
             import stable_baselines3  # noqa: F401
@@ -777,7 +902,14 @@ def main() -> None:
         )
         result = run_case(case, args.timeout)
         results.append(result)
-        if result["status"] == "ok":
+        if result["status"] == "ok" and case["impl"] == "overhead":
+            train, env = result["train"], result["env_only"]
+            print(
+                f"training {train['min'] * 100:+.1f}% (fastest) {train['median'] * 100:+.1f}% (median); env alone "
+                f"{env['min'] * 100:+.1f}% {env['median'] * 100:+.1f}%",
+                flush=True,
+            )
+        elif result["status"] == "ok":
             print(
                 f"compile {result['compile_s']:.1f} s, run {result['run_s']:.1f} s "
                 f"(CPU {result['run_cpu_s']:.1f} s), {_rate(result['steps_per_s'])} steps/s, "
