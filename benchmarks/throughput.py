@@ -199,30 +199,26 @@ ENV_ONLY_ENVS, ENV_ONLY_STEPS = 2048, 256  # the env-only overhead rollout: envs
 
 def _build_env_only(case: dict[str, Any]) -> Callable[[], Any]:
     """A compiled rollout of ENV_ONLY_ENVS training envs (the agent config's own env stack, episode statistics
-    included) under uniformly random actions, every transition reduced into a checksum: the env alone."""
+    included) under uniformly random actions, through the trainers' own `rollout`, its transitions reduced into a
+    checksum: the env alone."""
     import jax
 
-    from amjax.agents.rollout import PRNG_IMPL, reset_envs, step_envs
+    from amjax.agents.rollout import PRNG_IMPL, reset_envs, rollout
 
     env, params, _ = _agent_config(case, _costs(case)[0]).validate().make_env()
     num_actions = env.action_space(params).n
 
-    @jax.jit
-    def rollout(key):
-        def step(carry, key):
-            batch, checksum = carry
-            key_action, key_step = jax.random.split(key)
-            action = jax.random.randint(key_action, (ENV_ONLY_ENVS,), 0, num_actions)
-            batch, t = step_envs(env, params, batch, action, key_step)
-            checksum += t.reward.sum() + t.next_obs.sum() + t.obs.sum() + t.episode.length.sum()
-            return (batch, checksum), None
+    def random_action(batch, carry, key):
+        return jax.random.randint(key, batch.first.shape, 0, num_actions), carry, None
 
+    @jax.jit
+    def random_rollout(key):
         batch = reset_envs(env, params, key, ENV_ONLY_ENVS)
-        (_, checksum), _ = jax.lax.scan(step, (batch, 0.0), jax.random.split(key, ENV_ONLY_STEPS))
-        return checksum
+        _, _, t, _ = rollout(env, params, batch, None, random_action, key, ENV_ONLY_STEPS)
+        return t.reward.sum() + t.next_obs.sum() + t.obs.sum() + t.episode.length.sum()
 
     key = jax.random.key(0, impl=PRNG_IMPL)
-    compiled = rollout.lower(key).compile()
+    compiled = random_rollout.lower(key).compile()
     return lambda: compiled(key).block_until_ready()
 
 
@@ -373,6 +369,11 @@ def _parse_steps(text: str | None) -> dict[int, int] | int | None:
     return {int(k): int(v) for k, v in (item.split(":") for item in text.split(","))}
 
 
+def _budget_steps(rule: dict[str, int], configs: int) -> int:
+    """Steps per configuration by a STEP_RULES entry: the budget shared out, clipped to [min, max]."""
+    return min(rule["max"], max(rule["min"], rule["budget"] // configs))
+
+
 def _default_buffer(steps: int, unit: int) -> int:
     """min(DQNConfig's default buffer, the steps of one run), a multiple of the steps per update."""
     from amjax.agents import DQNConfig
@@ -401,8 +402,7 @@ def build_cases(args: argparse.Namespace) -> list[dict[str, Any]]:
             elif isinstance(steps_arg, dict) and size in steps_arg:
                 steps = steps_arg[size]
             else:
-                rule = rules[agent]
-                steps = min(rule["max"], max(rule["min"], rule["budget"] // size))
+                steps = _budget_steps(rules[agent], size)
             steps = _round_steps(steps, unit)
             for impl in args.impls:
                 case = {
@@ -448,8 +448,7 @@ def build_cases(args: argparse.Namespace) -> list[dict[str, Any]]:
             )
     for agent in args.agents:
         for size in args.overhead:
-            rule = rules[agent]
-            steps = _round_steps(min(rule["max"], max(rule["min"], rule["budget"] // size)), _steps_per_update(agent))
+            steps = _round_steps(_budget_steps(rules[agent], size), _steps_per_update(agent))
             case = {"impl": "overhead", "agent": agent, "configs": size, "steps": steps, "vanilla": False, **common}
             # Training only: one evaluation of one episode at the end, so the env and the learner are what is timed.
             case.update(evals=1, eval_episodes=1, repeats=args.overhead_rounds)
@@ -601,7 +600,7 @@ def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
 
 
 def format_text(rows: list[list[str]]) -> str:
-    widths = [max(len(h), *(len(row[i]) for row in rows)) for i, h in enumerate(HEADER)]
+    widths = [max([len(h), *(len(row[i]) for row in rows)]) for i, h in enumerate(HEADER)]
 
     def line(cells: list[str]) -> str:
         return "  ".join(

@@ -48,3 +48,9 @@ def test_overhead_cases_are_training_only():
         assert (case["evals"], case["eval_episodes"], case["repeats"]) == (1, 1, 6)
         config = throughput._agent_config(case, 0.1).validate()
         assert config.num_evals == 1 and config.total_timesteps == case["steps"]
+
+
+def test_table_without_rows():
+    # An overhead-only run (`--impls '' --overhead 256`) has no table rows: the header still prints.
+    lines = throughput.format_text(throughput.table_rows([{"impl": "overhead"}])).splitlines()
+    assert len(lines) == 2 and lines[0].split()[0] == "implementation"
