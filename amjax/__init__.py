@@ -7,6 +7,8 @@ MDP, episode statistics, Gymnasium bridges) -> `amjax.agents` (networks and one 
 On import, amjax gives JAX one CPU device per core (see `amjax.cores`) so that sweeps can use every core.
 """
 
+from importlib import metadata as _metadata
+
 from amjax.cores import default_cpu_devices
 
 default_cpu_devices()  # before anything imports gymnax, which starts JAX's backend
@@ -16,7 +18,10 @@ from amjax.make import make  # noqa: E402
 from amjax.wrappers.active_measure import ActiveMeasure, AlwaysMeasured, MeasureParams, MeasureState  # noqa: E402
 from amjax.wrappers.episode_stats import EpisodeStats  # noqa: E402
 
-__version__ = "0.1.0"
+try:
+    __version__ = _metadata.version("amjax-rl")  # the distribution's name; the import package is `amjax`
+except _metadata.PackageNotFoundError:  # a source tree on sys.path without an install
+    __version__ = "0+unknown"
 
 __all__ = [
     "ActiveMeasure",

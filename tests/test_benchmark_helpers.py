@@ -43,7 +43,8 @@ def test_overhead_cases_are_training_only():
         overhead=[256], overhead_rounds=6, buffer=None, buffer_scan=[],
     )
     cases = throughput.build_cases(args)
-    assert [(c["impl"], c["agent"], c["configs"]) for c in cases] == [("overhead", "ppo", 256), ("overhead", "dqn", 256)]
+    expected = [("overhead", "ppo", 256), ("overhead", "dqn", 256)]
+    assert [(c["impl"], c["agent"], c["configs"]) for c in cases] == expected
     for case in cases:
         assert (case["evals"], case["eval_episodes"], case["repeats"]) == (1, 1, 6)
         config = throughput._agent_config(case, 0.1).validate()

@@ -7,6 +7,8 @@ Deselect with `-m "not slow"`."""
 from __future__ import annotations
 
 import ast
+import re
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +19,7 @@ nbclient = pytest.importorskip("nbclient")
 pytest.importorskip("ipykernel")
 
 NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
+DISTRIBUTION = tomllib.loads((NOTEBOOKS.parent / "pyproject.toml").read_text())["project"]["name"]
 
 # The smallest PPO that compiles quickly: compile time, not training, dominates these runs.
 TINY_PPO = {"num_envs": 4, "num_steps": 32, "update_epochs": 1, "num_minibatches": 1, "hidden": (16,)}
@@ -54,6 +57,21 @@ def test_every_notebook_is_tested_and_clean():
         defined = {t.id for node in ast.parse(cell.source).body if isinstance(node, ast.Assign) for t in node.targets}
         assert set(overrides) <= defined, f"{name}: overrides {set(overrides) - defined} are not parameters"
         assert not any(c.get("outputs") for c in notebook.cells if c.cell_type == "code"), f"{name}: stored outputs"
+
+
+def test_install_cells_install_this_project():
+    """The name `amjax` on PyPI is a stranger's package: every install names this project's distribution, and the
+    cell checks that the `amjax` it imported is this project."""
+    assert DISTRIBUTION != "amjax"
+    for path in sorted(NOTEBOOKS.glob("*.ipynb")):
+        notebook = nbformat.read(path, as_version=4)
+        installs = [c.source for c in notebook.cells if c.cell_type == "code" and "pip install" in c.source]
+        assert len(installs) == 1, f"{path.name}: expected one install cell"
+        cell = installs[0]
+        assert f'AMJAX_SOURCE = "{DISTRIBUTION}[plots]"' in cell, f"{path.name}: installs no {DISTRIBUTION}"
+        assert f'name = "{DISTRIBUTION}"' in cell, f"{path.name}: does not recognise its own clone"
+        assert not re.search(r"%pip install[^\n]*[\"' ]amjax(\[|[\"' ]|$)", cell), f"{path.name}: installs bare amjax"
+        assert 'hasattr(amjax, name) for name in ("make", "ActiveMeasure")' in cell, f"{path.name}: no identity check"
 
 
 @pytest.fixture(scope="module")

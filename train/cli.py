@@ -1,4 +1,4 @@
-"""Command line: `python -m train sweep ...`, `demo`, `presets`, `report` and `replicate`.
+"""Command line: `amjax sweep ...`, `demo`, `presets`, `report` and `replicate` (also `python -m train ...`).
 
 Bad flags exit with status 2 and a message before anything is written or compiled.
 """
@@ -82,9 +82,9 @@ def make_loggers(args: argparse.Namespace, out: str) -> list[Any]:
     return loggers
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m train",
+        prog=prog,
         description="Train active-measure agents over grids of (env, agent, cost, seed, hyperparameters), "
         "all configurations of a group in one compiled program.",
     )
@@ -187,8 +187,8 @@ _SEED_TABLE_COLUMNS = {
 }
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+def main(argv: Sequence[str] | None = None, prog: str = "python -m train") -> int:
+    parser = build_parser(prog)
     args = parser.parse_args(argv)
     if args.command == "report":
         return report.run(args)
@@ -222,3 +222,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"\nResults: {result.out}/results.parquet (.csv), summary.parquet (.csv), seed_summary.csv, "
           "metadata.json")
     return 0
+
+
+def console_main() -> int:
+    """The `amjax` console command (`[project.scripts]`)."""
+    return main(prog="amjax")

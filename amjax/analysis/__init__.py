@@ -8,13 +8,13 @@ analysis.paper_table(summary, results)                        # the paper's tabl
 analysis.write_report("runs/x")                               # runs/x/report/report.md + figures
 ```
 
-Needs matplotlib (`pip install "amjax[plots]"`).
+Needs matplotlib (`pip install "amjax-rl[plots]"`).
 """
 
 try:
     import matplotlib  # noqa: F401
 except ImportError as error:  # pragma: no cover - depends on the installation
-    raise ImportError('amjax.analysis needs matplotlib: pip install "amjax[plots]"') from error
+    raise ImportError('amjax.analysis needs matplotlib: pip install "amjax-rl[plots]"') from error
 
 from amjax.analysis.maps import MeasurementMap, plot_measurement_map, record_agent, record_measurements
 from amjax.analysis.paper import PAPER_ALWAYS_MEASURE, PAPER_BEST_RETURN

@@ -46,7 +46,7 @@ def _run_config(rows: pd.DataFrame) -> dict[str, Any]:
 
 
 def _missing(package: str) -> ImportError:
-    return ImportError(f"{package} is not installed: pip install 'amjax[logging]' (or pip install {package})")
+    return ImportError(f"{package} is not installed: pip install 'amjax-rl[logging]' (or pip install {package})")
 
 
 class TensorBoardLogger:

@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 from flax import serialization
 
+import amjax
 from amjax.files import atomic_write
 
 KEY_COLUMNS = ["config_id", "env_steps"]
@@ -106,8 +107,8 @@ def load_checkpoint(path: Path, like: Any) -> tuple[Any, int]:
 
 def environment_info() -> dict[str, Any]:
     """Package versions, git revision and machine, for the metadata file."""
-    versions = {}
-    for name in ("amjax", "jax", "jaxlib", "flax", "optax", "gymnax", "numpy", "pandas"):
+    versions = {"amjax": amjax.__version__}
+    for name in ("jax", "jaxlib", "flax", "optax", "gymnax", "numpy", "pandas"):
         try:
             versions[name] = metadata.version(name)
         except metadata.PackageNotFoundError:

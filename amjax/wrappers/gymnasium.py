@@ -7,8 +7,8 @@
   as a `gymnasium.Env` that passes `gymnasium.utils.env_checker.check_env`, for Stable-Baselines3,
   Tianshou and the like.
 
-Gymnasium is an optional extra (`pip install amjax[gymnasium]`): of amjax's own modules only this one
-imports it when imported (gymnax 1.0.1 itself still requires it: gymnax/environments/spaces.py).
+Gymnasium is a core dependency (gymnax 1.0.1 imports it in gymnax/environments/spaces.py); of amjax's own
+modules only this one imports it.
 """
 
 from __future__ import annotations
