@@ -6,7 +6,7 @@ from amjax.agents.drqn import DRQN, DRQNConfig
 from amjax.agents.ppo import PPO, PPOConfig
 from amjax.agents.ppo_rnn import PPO_RNN, PPORNNConfig
 from amjax.agents.saved import PolicyFileError, SavedPolicy, load_policy, save_policy
-from amjax.agents.training import Algorithm, EvalRow, RunState, evaluate, init_run, run_evals
+from amjax.agents.training import Algorithm, EvalRow, RunState, evaluate, init_run, rescore, run_evals
 
 ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN, DRQN, PPO_RNN)}
 
@@ -29,6 +29,7 @@ __all__ = [
     "evaluate",
     "init_run",
     "load_policy",
+    "rescore",
     "run_evals",
     "save_policy",
     "stack_configs",

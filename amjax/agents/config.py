@@ -44,6 +44,7 @@ class AgentConfig:
     total_timesteps: int = static(100_000)  # env steps per configuration (all parallel envs together)
     eval_every: int = static(10_000)  # env steps between greedy evaluations
     eval_episodes: int = static(10)  # test episodes per evaluation
+    rescore_episodes: int = static(100)  # fresh test episodes that re-score the best policy at the end of a sweep
     cost: float = 0.0  # traced: charged per measurement
     noise_std: float = 0.0  # traced: std of the observation noise in mode "noisy"
 
@@ -105,11 +106,15 @@ class AgentConfig:
         check_positive_int("total_timesteps", self.total_timesteps)
         check_positive_int("eval_every", self.eval_every)
         check_positive_int("eval_episodes", self.eval_episodes)
+        check_positive_int("rescore_episodes", self.rescore_episodes)
         steps = self.steps_per_update()
         if self.eval_every % steps or self.total_timesteps % self.eval_every:
+            every = max(steps, round(self.eval_every / steps) * steps)
+            total = max(every, round(self.total_timesteps / every) * every)
             raise ValueError(
                 f"eval_every={self.eval_every} must be a multiple of the env steps per update ({steps}) "
-                f"and divide total_timesteps={self.total_timesteps}"
+                f"and divide total_timesteps={self.total_timesteps}; nearest valid values: eval_every={every}, "
+                f"total_timesteps={total} (the command line rounds them for you)"
             )
         return self
 

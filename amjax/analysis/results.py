@@ -76,7 +76,7 @@ def load_results(path: str | Path) -> SweepData:
         raise NotASweepError(f"{path}: the sweep has no results yet (no evaluation has finished)")
     if "eval_measured_fraction" not in results:
         results["eval_measured_fraction"] = results.eval_measurements / results.eval_length
-    summary = storage.summarize(results, hyper_columns(results))
+    summary = storage.summarize(results, hyper_columns(results), storage.read_table(path / "rescored"))
     return SweepData(results, summary, metadata)
 
 

@@ -7,7 +7,8 @@ import dataclasses
 import hashlib
 import itertools
 import json
-from collections.abc import Mapping, Sequence
+import math
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,6 +32,13 @@ class SweepSpec:
     rate, gamma, ...) are vmapped within one compiled program; static fields (network widths, num_envs, ...) compile
     one program per value. `vanilla` adds, per env, agent and seed, a run on the plain environment (the paper's
     baseline).
+
+    Seeds are paired by design: every configuration with seed s starts from `jax.random.PRNGKey(s)`, whatever its
+    cost, agent or hyperparameters, so configurations that differ only in cost share their network initialisation,
+    training env resets and action noise, and all configurations of one env and seed are tested on the same
+    evaluation and re-scoring episodes. Differences between costs or agents at one seed are then paired
+    comparisons, not differences of luck; independent replicates come from different seeds. Seeds are 32-bit
+    (0 <= s < 2**32): `PRNGKey` keeps only the low 32 bits, so larger seeds would alias smaller ones.
     """
 
     envs: tuple[str, ...] = ("CartPole-v0",)
@@ -96,6 +104,9 @@ def agent_hyperparams(spec: SweepSpec, agent: str) -> dict[str, tuple[str, Any]]
     return chosen
 
 
+MAX_SEED = 2**32  # seeds are 32-bit (`jax.random.PRNGKey` without x64)
+
+
 def validate_spec(spec: SweepSpec) -> None:
     """Check the whole spec on concrete values (before anything is written or compiled)."""
     if not spec.envs or not spec.agents or not spec.seeds:
@@ -110,6 +121,8 @@ def validate_spec(spec: SweepSpec) -> None:
         check_real("cost", cost, low=0.0)
     for seed in spec.seeds:
         check_positive_int("seed", seed, minimum=0)
+        if seed >= MAX_SEED:  # jax.random.PRNGKey keeps the low 32 bits: 2**32 + s would alias s
+            raise ValueError(f"seed: got {seed}; allowed values: integers in [0, {MAX_SEED - 1}] (2**32 - 1)")
     if len(set(spec.seeds)) != len(spec.seeds):
         raise ValueError(f"seeds: repeated values in {list(spec.seeds)}")
     for key, value in spec.hyperparams.items():
@@ -152,7 +165,31 @@ def config_id(env: str, agent: str, vanilla: bool, cost: float, seed: int, hp: M
 def expand(spec: SweepSpec) -> list[RunConfig]:
     """Every configuration of the sweep, each with its validated agent config."""
     validate_spec(spec)
-    runs = []
+    runs = list(_runs(spec))
+    for run in runs:
+        run.config.validate()
+    return runs
+
+
+def round_schedule(spec: SweepSpec) -> tuple[SweepSpec, str | None]:
+    """`spec` with `total_timesteps` and `eval_every` rounded to the nearest valid values: whole updates of every
+    agent of the sweep (their env steps per update differ: PPO's num_envs x num_steps, DQN's num_envs x
+    train_freq, ...) and whole evaluation periods; plus a one-line note of what changed (None if nothing did).
+    What a command line offers for any budget; the Python API stays strict."""
+    validate_spec(spec)
+    unit = math.lcm(*{run.config.steps_per_update() for run in _runs(spec)})
+    total = max(1, spec.total_timesteps)
+    every = max(unit, round(min(spec.eval_every, total) / unit) * unit)
+    total = max(every, round(total / every) * every)
+    if (total, every) == (spec.total_timesteps, spec.eval_every):
+        return spec, None
+    note = (f"steps {spec.total_timesteps:,} and eval-every {spec.eval_every:,} rounded to {total:,} and {every:,}: "
+            f"whole updates of every agent (a multiple of {unit:,} env steps) and whole evaluation periods")
+    return dataclasses.replace(spec, total_timesteps=total, eval_every=every), note
+
+
+def _runs(spec: SweepSpec) -> Iterator[RunConfig]:
+    """The grid's configurations in order, their agent configs not yet validated."""
     for env, agent in itertools.product(spec.envs, spec.agents):
         config_type = ALGORITHMS[agent].config_type
         applies = agent_hyperparams(spec, agent)  # field -> (spec key, value)
@@ -173,12 +210,8 @@ def expand(spec: SweepSpec) -> list[RunConfig]:
                 eval_episodes=spec.eval_episodes,
                 **{field_of[k]: tuple(v) if isinstance(v, list) else v for k, v in hp.items()},
             )
-            config.validate()
-            runs.append(
-                RunConfig(config_id(env, agent, vanilla, cost, seed, hp), env, agent, vanilla, cost, seed, hp,
-                          config)
-            )
-    return runs
+            yield RunConfig(config_id(env, agent, vanilla, cost, seed, hp), env, agent, vanilla, cost, seed, hp,
+                            config)
 
 
 def group_runs(runs: Sequence[RunConfig]) -> list[list[RunConfig]]:

@@ -13,7 +13,7 @@ import json
 import math
 import operator
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from amjax.agents import ALGORITHMS, Algorithm, EvalRow, init_run, run_evals, stack_configs
+from amjax.agents import ALGORITHMS, Algorithm, EvalRow, init_run, rescore, run_evals, stack_configs
 from amjax.agents.saved import SavedPolicy, load_policy, save_policy
 from amjax.files import folder_lock, remove_partial_writes
 from amjax.sweep import storage
@@ -109,6 +109,27 @@ def _compiled(
     return init, chunk
 
 
+@functools.cache
+def _compiled_rescore(algo: Algorithm, devices: tuple[jax.Device, ...]) -> Callable:
+    """Jitted re-scoring of every configuration's best policy (`training.rescore`), split over `devices`."""
+    sharding = config_sharding(list(devices))
+    batched = jax.vmap(lambda config, state: rescore(algo, config, state))
+    return jax.jit(shard_configs(batched, list(devices)), in_shardings=sharding, out_shardings=sharding)
+
+
+def _rescored_rows(batch: _Batch, configs: Any, states: Any, devices: tuple[jax.Device, ...]) -> pd.DataFrame:
+    """Each real configuration's best policy on fresh test episodes (one row per configuration)."""
+    scores = jax.device_get(_compiled_rescore(batch.algo, devices)(configs, states))
+    real = len(batch.runs)
+    return pd.DataFrame({
+        "config_id": [r.config_id for r in batch.runs],
+        "best_policy_return": np.asarray(scores["return"])[:real],
+        "best_policy_raw_return": np.asarray(scores["raw_return"])[:real],
+        "best_policy_measured_fraction": np.asarray(scores["measured_fraction"])[:real],
+        "best_policy_episodes": [r.config.rescore_episodes for r in batch.runs],
+    })
+
+
 def _real(batch: _Batch, tree: Any) -> Any:
     """The rows of a batched pytree that belong to real (not padding) configurations."""
     return jax.tree.map(lambda x: x[: len(batch.runs)], tree)
@@ -159,8 +180,11 @@ def load_sweep_policy(out: str | Path, config_id: str) -> SavedPolicy:
     return load_policy(path)
 
 
-def _save_policies(out: Path, batch: _Batch, states: Any, evals_done: int, results: pd.DataFrame) -> None:
-    """Write each real configuration's best policy so far (parameters of its best evaluation)."""
+def _save_policies(
+    out: Path, batch: _Batch, states: Any, evals_done: int, results: pd.DataFrame, rescored: pd.DataFrame | None
+) -> None:
+    """Write each real configuration's best policy so far (parameters of its best evaluation), with its re-scored
+    figures once the configuration has finished."""
     best_params, best_return, best_fraction = jax.device_get(
         (states.best_params, states.best_return, states.best_measured_fraction)
     )
@@ -174,6 +198,8 @@ def _save_policies(out: Path, batch: _Batch, states: Any, evals_done: int, resul
             "best_env_steps": int(best_steps.get(run.config_id, 0)),
             "trained_env_steps": evals_done * run.config.eval_every,
         }
+        if rescored is not None and run.config_id in rescored.index:
+            info.update({k: float(v) for k, v in rescored.loc[run.config_id].items()})
         params = jax.tree.map(operator.itemgetter(i), best_params)
         save_policy(policy_path(out, run.config_id), run.config, params, info)
 
@@ -182,7 +208,7 @@ def _cell(value: Any) -> Any:
     return "x".join(map(str, value)) if isinstance(value, list | tuple) else value
 
 
-def _claim_folder(out: Path, spec: SweepSpec, runs: Sequence[RunConfig]) -> None:
+def _claim_folder(out: Path, spec: SweepSpec, runs: Sequence[RunConfig], extra: Mapping[str, Any]) -> None:
     """Write the sweep's metadata to a new folder, or check that an existing folder holds the same sweep."""
     meta_path = out / "metadata.json"
     if meta_path.exists():
@@ -193,7 +219,7 @@ def _claim_folder(out: Path, spec: SweepSpec, runs: Sequence[RunConfig]) -> None
     else:
         storage.write_json(
             meta_path,
-            {"spec": spec.to_json(), "agent_configs": _group_configs(runs), **storage.environment_info()},
+            {"spec": spec.to_json(), "agent_configs": _group_configs(runs), **storage.environment_info(), **extra},
         )
 
 
@@ -211,8 +237,10 @@ def _train_batch(
     loggers: Sequence[RunLogger],
     devices: tuple[jax.Device, ...],
     wall_time: storage.WallTime,
-) -> pd.DataFrame | None:
-    """Train (or resume) one batch chunk by chunk, writing rows after every chunk; returns the results table."""
+    rescored: pd.DataFrame | None,
+) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
+    """Train (or resume) one batch chunk by chunk, writing rows after every chunk, then re-score its best policies;
+    returns the results and re-scoring tables."""
     config0 = batch.runs[0].config
     num_evals = config0.num_evals
     chunk_evals = _chunk_evals(num_evals, target_chunks)
@@ -245,7 +273,7 @@ def _train_batch(
             logger.log(new_rows)
         if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
             if save_policies:
-                _save_policies(out, batch, states, evals_done, results)
+                _save_policies(out, batch, states, evals_done, results, None)
             storage.save_checkpoint(ckpt_path, _real(batch, states), evals_done)
             last_checkpoint = time.monotonic()
         steps = len(batch.runs) * chunk_evals * config0.eval_every
@@ -255,7 +283,17 @@ def _train_batch(
         bar.update(steps)
         if on_chunk is not None:
             on_chunk(results)
-    return results
+    done = set() if rescored is None else set(rescored.config_id)
+    if any(run.config_id not in done for run in batch.runs):  # finished now, or before a kill
+        bar.set_description(f"{label}, re-scoring the best policies")
+        new = _rescored_rows(batch, configs, states, devices)
+        rescored = storage.merge_by_config(rescored, new)
+        storage.write_table(out / "rescored", rescored)
+        if save_policies:
+            _save_policies(out, batch, states, num_evals, results,
+                           new.set_index("config_id").drop(columns="best_policy_episodes"))
+        bar.set_description(label)
+    return results, rescored
 
 
 def run_sweep(
@@ -270,6 +308,7 @@ def run_sweep(
     save_policies: bool = True,
     loggers: Sequence[RunLogger] = (),
     devices: Sequence[jax.Device] | None = None,
+    metadata: Mapping[str, Any] | None = None,
 ) -> SweepResult:
     """Train every configuration of `spec`, writing results under `out`; resumes a sweep already there.
 
@@ -287,6 +326,8 @@ def run_sweep(
         `WandbLogger(project, out)`); they are closed when the sweep ends or stops.
       devices: the devices each batch's configurations are split over (default: `sweep_devices()`, every local
         device: one per CPU core, see `amjax.cores`). Results do not depend on it; a sweep may resume on others.
+      metadata: extra entries for a new folder's metadata.json (e.g. the budget a command line asked for before
+        `round_schedule`).
 
     Raises:
       SweepMismatchError: `out` holds a different sweep.
@@ -298,17 +339,18 @@ def run_sweep(
     devices = tuple(devices or sweep_devices())
     with folder_lock(out):  # one writer per folder; the lock dies with the process, however it dies
         remove_partial_writes(out)  # temporary files of writes that a killed run left unfinished
-        _claim_folder(out, spec, runs)
+        _claim_folder(out, spec, runs, metadata or {})
         wall_time = storage.WallTime(out / "wall_time.json")
         results = storage.read_table(out / "results")
+        rescored = storage.read_table(out / "rescored")
         total_steps = len(runs) * spec.total_timesteps
         bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
         try:
             for batch in _batches(runs, max_batch, len(devices)):
-                results = _train_batch(
+                results, rescored = _train_batch(
                     batch, out, results, hyper_columns, bar, target_chunks=target_chunks,
                     checkpoint_every_s=checkpoint_every_s, save_policies=save_policies, on_chunk=on_chunk,
-                    loggers=loggers, devices=devices, wall_time=wall_time,
+                    loggers=loggers, devices=devices, wall_time=wall_time, rescored=rescored,
                 )
         finally:
             bar.close()
@@ -316,7 +358,7 @@ def run_sweep(
                 logger.close()
         if results is None:
             results = pd.DataFrame()
-        summary = storage.summarize(results, hyper_columns)
+        summary = storage.summarize(results, hyper_columns, rescored)
         table = storage.seed_table(summary, hyper_columns)
         storage.write_table(out / "summary", summary)
         storage.write_table(out / "seed_summary", table)

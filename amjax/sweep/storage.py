@@ -53,6 +53,12 @@ def merge_rows(old: pd.DataFrame | None, new: pd.DataFrame) -> pd.DataFrame:
     return table.sort_values(KEY_COLUMNS, kind="stable").reset_index(drop=True)
 
 
+def merge_by_config(old: pd.DataFrame | None, new: pd.DataFrame) -> pd.DataFrame:
+    """Append per-configuration rows; a config_id already present is replaced, never duplicated."""
+    table = new if old is None else pd.concat([old, new], ignore_index=True)
+    return table.drop_duplicates("config_id", keep="last").sort_values("config_id").reset_index(drop=True)
+
+
 # -- checkpoints -----------------------------------------------------------------------------------------
 
 
@@ -138,9 +144,14 @@ def environment_info() -> dict[str, Any]:
 ID_COLUMNS = ["config_id", "env", "agent", "vanilla", "cost", "seed"]
 
 
-def summarize(results: pd.DataFrame, hyper_columns: list[str]) -> pd.DataFrame:
+RESCORED_COLUMNS = ["best_policy_return", "best_policy_raw_return", "best_policy_measured_fraction",
+                    "best_policy_episodes"]
+
+
+def summarize(results: pd.DataFrame, hyper_columns: list[str], rescored: pd.DataFrame | None = None) -> pd.DataFrame:
     """Per configuration: best greedy costed reward (the paper's metric; diverged points excluded), the
-    measured fraction at that point, final values, and the reduction in measurements vs always measuring."""
+    measured fraction at that point, final values, the reduction in measurements vs always measuring, and (from
+    `rescored`, NaN until a configuration has finished) its best policy re-scored on fresh test episodes."""
     rows = []
     results = results.assign(measured_fraction=results.eval_measurements / results.eval_length)
     for _, runs in results.groupby("config_id", sort=False):
@@ -162,7 +173,12 @@ def summarize(results: pd.DataFrame, hyper_columns: list[str]) -> pd.DataFrame:
             diverged=bool(runs.diverged.any()),
         )
         rows.append(row)
-    return pd.DataFrame(rows)
+    summary = pd.DataFrame(rows)
+    if summary.empty:
+        return summary
+    if rescored is None:
+        rescored = pd.DataFrame(columns=["config_id", *RESCORED_COLUMNS])
+    return summary.merge(rescored[["config_id", *RESCORED_COLUMNS]], on="config_id", how="left")
 
 
 def seed_table(summary: pd.DataFrame, hyper_columns: list[str]) -> pd.DataFrame:
@@ -182,5 +198,9 @@ def seed_table(summary: pd.DataFrame, hyper_columns: list[str]) -> pd.DataFrame:
         measured_fraction_median=("best_measured_fraction", "median"),
         measured_fraction_q25=("best_measured_fraction", q(0.25)),
         measured_fraction_q75=("best_measured_fraction", q(0.75)),
+        best_policy_return_median=("best_policy_return", "median"),
+        best_policy_return_q25=("best_policy_return", q(0.25)),
+        best_policy_return_q75=("best_policy_return", q(0.75)),
+        best_policy_measured_fraction_median=("best_policy_measured_fraction", "median"),
     )
     return table.reset_index()

@@ -219,7 +219,8 @@ def test_folder_with_another_sweep_is_refused(tmp_path, full_run, capsys):
         (["--set", "total_timesteps=1000,2000"], "total_timesteps"),
         (["--set", "learning_rate=-1"], "learning_rate"),
         (["--set", "no_such_field=3"], "no_such_field"),
-        (["--steps", "1000", "--eval-every", "300"], "eval_every"),
+        (["--steps", "0"], "--steps"),
+        (["--eval-every", "-5"], "--eval-every"),
         (["--max-batch", "0"], "max-batch"),
     ],
 )
@@ -266,3 +267,23 @@ def test_summaries_by_hand():
     assert table.best_return_median[0] == 5.0  # median of 30, 5, 3
     assert table.best_return_q25[0] == pytest.approx(4.0) and table.best_return_q75[0] == pytest.approx(17.5)
     assert table.diverged[0] == 1
+
+
+def test_cli_accepts_any_budget_and_records_the_rounding(tmp_path, capsys):
+    """Like SB3 and CleanRL, any --steps / --eval-every: rounded to whole updates (here 4 envs x 32 steps = 128)
+    and whole evaluation periods, said in one line and kept in metadata.json."""
+    import json
+
+    out = tmp_path / "run"
+    code = main(["sweep", "--agent", "ppo", "--cost", "0.1", "--seeds", "1", "--steps", "1000", "--eval-every", "300",
+                 "--eval-episodes", "2", "--set", "num_envs=4", "--set", "num_steps=32", "--set", "rescore_episodes=2",
+                 "--out", str(out), "--no-progress"])
+    assert code == 0
+    assert "steps 1,000 and eval-every 300 rounded to 1,024 and 256" in capsys.readouterr().out
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["requested_schedule"] == {"total_timesteps": 1000, "eval_every": 300}
+    assert (meta["spec"]["total_timesteps"], meta["spec"]["eval_every"]) == (1024, 256)
+    assert sorted(pd.read_parquet(out / "results.parquet").env_steps) == [256, 512, 768, 1024]
+    with pytest.raises(ValueError, match="nearest valid values: eval_every=256, total_timesteps=1024"):
+        expand(SweepSpec(agents=("ppo",), total_timesteps=1000, eval_every=300,
+                         hyperparams={"num_envs": 4, "num_steps": 32}))
