@@ -1,8 +1,10 @@
-"""`python -m train replicate`: the paper's whole grid, then its report.
+"""`amjax replicate`: the paper's whole grid, then its report.
 
-CartPole-v0, Acrobot-v1 and LunarLander-v3 x costs 0, 0.1, 0.2, 0.3 plus vanilla x Dueling DQN, PPO and DRQN x 10
-seeds: one sweep per environment in `OUT/<env>/` (each resumable: rerun the same command after an interruption),
-each with its report in `OUT/<env>/report/`, and `OUT/report.md` joining their tables with wall times.
+The paper's grid (default): Dueling DQN and PPO on CartPole-v0, Acrobot-v1 and LunarLander-v3, and DRQN on
+CartPole-v0 (where the paper ran it), each x costs 0, 0.1, 0.2, 0.3 plus vanilla x 10 seeds: 350 configurations.
+`--extended` runs DRQN and recurrent PPO on every environment too: 600 configurations. One sweep per environment in
+`OUT/<env>/` (each resumable: rerun the same command after an interruption), each with its report in
+`OUT/<env>/report/`, and `OUT/report.md` joining their tables with wall times.
 """
 
 from __future__ import annotations
@@ -16,19 +18,42 @@ from typing import Any
 import pandas as pd
 
 from amjax.files import atomic_write, folder_lock, remove_partial_writes
-from train.presets import REPLICATE_AGENTS, REPLICATE_BUDGETS, replicate_specs
+from train.presets import REPLICATE_BUDGETS, replicate_specs
+
+# The paper ran its recurrent agent (DRQN) on CartPole only; the default grid follows it.
+PAPER_AGENTS: dict[str, tuple[str, ...]] = {
+    "CartPole-v0": ("dqn", "ppo", "drqn"),
+    "Acrobot-v1": ("dqn", "ppo"),
+    "LunarLander-v3": ("dqn", "ppo"),
+}
+EXTENDED_AGENTS = ("dqn", "ppo", "drqn", "ppo-rnn")  # --extended: on every environment
+
+
+def replicate_grid(
+    envs: tuple[str, ...], agents: tuple[str, ...] = (), extended: bool = False, seeds: int = 10, quick: bool = False
+) -> dict[str, Any]:
+    """One sweep spec per environment: `agents` on every env if given, else the paper's grid (`extended`: the
+    recurrent agents on every env too)."""
+    specs: dict[str, Any] = {}
+    for env in envs:
+        chosen = agents or (EXTENDED_AGENTS if extended else PAPER_AGENTS.get(env, ("dqn", "ppo")))
+        specs |= replicate_specs((env,), chosen, seeds, quick)
+    return specs
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
-        "replicate", help="run the paper's grid (3 envs x 5 settings x 3 agents x 10 seeds) and write its report",
+        "replicate", help="run the paper's grid (350 configurations; --extended: 600) and write its report",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--out", default="runs/replicate", help="output folder (rerun to resume)")
     parser.add_argument("--env", nargs="+", default=list(REPLICATE_BUDGETS), metavar="ENV",
                         help=f"a subset of {', '.join(REPLICATE_BUDGETS)}")
-    parser.add_argument("--agent", nargs="+", default=list(REPLICATE_AGENTS), metavar="AGENT",
-                        help=f"a subset of the agents (default: {', '.join(REPLICATE_AGENTS)})")
+    parser.add_argument("--agent", nargs="+", metavar="AGENT",
+                        help="these agents on every env (default: the paper's: dqn and ppo everywhere, drqn on "
+                        "CartPole-v0)")
+    parser.add_argument("--extended", action="store_true",
+                        help=f"the extended grid: {', '.join(EXTENDED_AGENTS)} on every env")
     parser.add_argument("--seeds", type=int, help="seeds per setting (default: 10; 2 with --quick)")
     parser.add_argument("--quick", action="store_true",
                         help="a smoke run of the same grid: 40,960 steps per configuration (default 2 seeds)")
@@ -75,7 +100,7 @@ def run(args: argparse.Namespace, error: Any) -> int:
             raise ValueError(f"--seeds: got {seeds}; allowed values: integers >= 1")
         if args.max_batch < 1:
             raise ValueError(f"--max-batch: got {args.max_batch}; allowed values: integers >= 1")
-        specs = replicate_specs(tuple(args.env), tuple(args.agent), seeds, args.quick)
+        specs = replicate_grid(tuple(args.env), tuple(args.agent or ()), args.extended, seeds, args.quick)
         for spec in specs.values():
             expand(spec)  # every check before anything is written
         from train.cli import make_loggers
@@ -89,7 +114,7 @@ def run(args: argparse.Namespace, error: Any) -> int:
             remove_partial_writes(out, recursive=False)  # each sweep folder cleans its own
             index = _replicate(specs, out, args)
     except (SweepMismatchError, FolderBusyError) as problem:
-        print(f"python -m train replicate: error: {problem}", file=sys.stderr)
+        print(f"replicate: error: {problem}", file=sys.stderr)
         return 2
     print(f"\nReplication report: {index}")
     return 0

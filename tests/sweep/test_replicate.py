@@ -28,6 +28,21 @@ def test_replication_grid_is_the_papers():
     assert presets.replicate_specs(("LunarLander-v3",), ("dqn",))["LunarLander-v3"].hyperparams == {}
 
 
+def test_default_grid_is_the_papers_and_extended_adds_the_recurrent_agents():
+    from amjax.sweep.grid import expand
+    from train.replicate import replicate_grid
+
+    envs = tuple(presets.REPLICATE_BUDGETS)
+    paper = replicate_grid(envs)
+    assert {env: spec.agents for env, spec in paper.items()} == {
+        "CartPole-v0": ("dqn", "ppo", "drqn"), "Acrobot-v1": ("dqn", "ppo"), "LunarLander-v3": ("dqn", "ppo")}
+    assert sum(len(expand(spec)) for spec in paper.values()) == (3 + 2 + 2) * 5 * 10 == 350
+    extended = replicate_grid(envs, extended=True)
+    assert all(spec.agents == ("dqn", "ppo", "drqn", "ppo-rnn") for spec in extended.values())
+    assert sum(len(expand(spec)) for spec in extended.values()) == 3 * 4 * 5 * 10 == 600
+    assert replicate_grid(("Acrobot-v1",), ("drqn",))["Acrobot-v1"].agents == ("drqn",)
+
+
 def test_replicate_runs_reports_and_resumes(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(presets.QUICK_BUDGETS, "CartPole-v0", (2048, 1024))
     args = ["replicate", "--quick", "--env", "CartPole-v0", "--agent", "ppo", "--seeds", "1", "--out",
