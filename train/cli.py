@@ -19,6 +19,7 @@ from amjax.envs.registry import registered_envs
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, run_sweep
 from amjax.sweep.grid import expand, round_schedule
 from train import replicate, report
+from train.flags import add_logging_arguments, make_loggers
 from train.presets import PRESETS
 
 
@@ -56,30 +57,6 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
             value = list(value)
         hyperparams[name] = value
     return hyperparams
-
-
-def add_logging_arguments(parser: argparse.ArgumentParser) -> None:
-    """--tensorboard / --wandb flags (optional per-configuration logging; local files are always written)."""
-    parser.add_argument("--tensorboard", action="store_true",
-                        help="also log every configuration to TensorBoard (OUT/tensorboard/<config_id>)")
-    parser.add_argument("--wandb", metavar="PROJECT",
-                        help="also log every configuration to Weights & Biases project PROJECT")
-    parser.add_argument("--wandb-mode", choices=("offline", "online"), default="offline",
-                        help="offline needs no network (upload later with `wandb sync OUT/wandb/offline-run-*`)")
-
-
-def make_loggers(args: argparse.Namespace, out: str) -> list[Any]:
-    """The loggers the flags ask for; ImportError (with the pip command) when a package is missing."""
-    from pathlib import Path
-
-    from amjax.sweep.loggers import TensorBoardLogger, WandbLogger
-
-    loggers: list[Any] = []
-    if getattr(args, "tensorboard", False):
-        loggers.append(TensorBoardLogger(Path(out) / "tensorboard"))
-    if getattr(args, "wandb", None):
-        loggers.append(WandbLogger(args.wandb, out, mode=args.wandb_mode))
-    return loggers
 
 
 def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:

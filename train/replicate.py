@@ -18,6 +18,7 @@ from typing import Any
 import pandas as pd
 
 from amjax.files import atomic_write, folder_lock, remove_partial_writes
+from train.flags import add_logging_arguments, make_loggers
 from train.presets import REPLICATE_BUDGETS, replicate_specs
 
 # The paper ran its recurrent agent (DRQN) on CartPole only; the default grid follows it.
@@ -60,8 +61,6 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--no-maps", action="store_true", help="skip the reports' measurement maps")
-    from train.cli import add_logging_arguments
-
     add_logging_arguments(parser)
     return parser
 
@@ -103,8 +102,6 @@ def run(args: argparse.Namespace, error: Any) -> int:
         specs = replicate_grid(tuple(args.env), tuple(args.agent or ()), args.extended, seeds, args.quick)
         for spec in specs.values():
             expand(spec)  # every check before anything is written
-        from train.cli import make_loggers
-
         make_loggers(args, str(args.out))  # a missing package fails here, before anything is written
     except (ValueError, TypeError, ImportError) as problem:
         error(str(problem))
@@ -125,7 +122,6 @@ def _replicate(specs: dict[str, Any], out: Path, args: argparse.Namespace) -> Pa
     from amjax.analysis import write_report
     from amjax.sweep import run_sweep
     from amjax.sweep.storage import WallTime
-    from train.cli import make_loggers
 
     timings: dict[str, float] = {}
     reports: dict[str, Path] = {}

@@ -5,10 +5,9 @@ from amjax.agents.dqn import DQN, DQNConfig
 from amjax.agents.drqn import DRQN, DRQNConfig
 from amjax.agents.ppo import PPO, PPOConfig
 from amjax.agents.ppo_rnn import PPO_RNN, PPORNNConfig
+from amjax.agents.registry import ALGORITHMS, agent_of, algorithm
 from amjax.agents.saved import PolicyFileError, SavedPolicy, load_policy, save_policy
 from amjax.agents.training import Algorithm, EvalRow, RunState, evaluate, init_run, rescore, run_evals
-
-ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN, DRQN, PPO_RNN)}
 
 __all__ = [
     "ALGORITHMS",
@@ -26,6 +25,8 @@ __all__ = [
     "PolicyFileError",
     "RunState",
     "SavedPolicy",
+    "agent_of",
+    "algorithm",
     "evaluate",
     "init_run",
     "load_policy",

@@ -21,6 +21,7 @@ import numpy as np
 from flax import serialization
 
 from amjax.agents.config import AgentConfig
+from amjax.agents.registry import agent_of, algorithm
 from amjax.agents.rollout import EnvBatch
 from amjax.agents.training import Policy, evaluate
 from amjax.files import atomic_write
@@ -31,25 +32,6 @@ VERSION = 1
 
 class PolicyFileError(ValueError):
     """A policy file that cannot be read, or whose contents do not fit the network its config describes."""
-
-
-def algorithm(agent: str):
-    """The registered algorithm named `agent`; ValueError listing the names otherwise."""
-    from amjax.agents import ALGORITHMS  # the registry imports this module's siblings
-
-    if agent not in ALGORITHMS:
-        raise ValueError(f"agent: unknown agent {agent!r}; allowed values: {', '.join(sorted(ALGORITHMS))}")
-    return ALGORITHMS[agent]
-
-
-def agent_of(config: AgentConfig) -> str:
-    """The registered name of the algorithm whose config type `config` is (exactly)."""
-    from amjax.agents import ALGORITHMS
-
-    for name, algo in ALGORITHMS.items():
-        if type(config) is algo.config_type:
-            return name
-    raise TypeError(f"config: no registered algorithm uses {type(config).__name__}")
 
 
 def params_template(agent: str, config: AgentConfig) -> Any:
@@ -166,5 +148,5 @@ def load_policy(path: str | Path) -> SavedPolicy:
 
 
 __all__ = [
-    "Actor", "PolicyFileError", "SavedPolicy", "agent_of", "algorithm", "load_policy", "params_template", "save_policy",
+    "Actor", "PolicyFileError", "SavedPolicy", "load_policy", "params_template", "save_policy",
 ]

@@ -27,6 +27,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from amjax.agents.config import AgentConfig
+from amjax.agents.registry import ALGORITHMS, agent_of
 from amjax.agents.rollout import ActFn, EnvBatch, fast_key
 from amjax.agents.training import Policy
 
@@ -128,8 +129,6 @@ def record_measurements(
 def _record_agent(
     algo_name: str, config: AgentConfig, params: Any, key: jax.Array, num_episodes: int
 ) -> dict[str, jax.Array]:
-    from amjax.agents import ALGORITHMS
-
     env, env_params, max_steps = config.make_env()
     # Recurrent agents size their initial carry by eval_episodes.
     act, carry = ALGORITHMS[algo_name].greedy(config.replace(eval_episodes=num_episodes), params)
@@ -143,8 +142,6 @@ def record_agent(config: AgentConfig, params: Any, key: jax.Array, num_episodes:
     `RunState.algo.params` (the last) from `ppo.train(config, key)`, or a loaded `SavedPolicy.params`. Configs
     that differ only in traced fields (the cost among them) share one compiled program.
     """
-    from amjax.agents.saved import agent_of
-
     return _to_map(_record_agent(agent_of(config), config, params, key, int(num_episodes)))
 
 

@@ -19,6 +19,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import pandas as pd
 
+from amjax.agents.registry import ALGORITHMS, algorithm
 from amjax.sweep import storage
 
 SETTING = ["env", "agent", "vanilla", "cost"]
@@ -147,8 +148,6 @@ def agent_config(metadata: dict[str, Any], agent: str, env: str | None = None, *
     hyperparameters); a swept traced field takes its first value. `env` picks among the sweep's envs (default:
     the first). Use it to retrain one configuration, e.g. to draw its measurement map.
     """
-    from amjax.agents.saved import algorithm
-
     config_type = algorithm(agent).config_type
     spec = metadata["spec"]
     env = spec["envs"][0] if env is None else env
@@ -171,8 +170,6 @@ def agent_config(metadata: dict[str, Any], agent: str, env: str | None = None, *
 
 def _planned_configs(spec: dict[str, Any]) -> int | None:
     """Configurations in a sweep spec (as stored in metadata.json, where tuples became lists)."""
-    from amjax.agents import ALGORITHMS
-
     try:
         settings = len(spec["costs"]) + bool(spec.get("vanilla"))
         total = 0
