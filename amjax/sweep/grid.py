@@ -31,7 +31,8 @@ class SweepSpec:
     `"ppo.num_envs"`) to that agent only, overriding an unscoped value of the same field. Traced fields (learning
     rate, gamma, ...) are vmapped within one compiled program; static fields (network widths, num_envs, ...) compile
     one program per value. `vanilla` adds, per env, agent and seed, a run on the plain environment (the paper's
-    baseline).
+    baseline). `env_defaults` maps an env id to hyperparameter values (same keys as `hyperparams`, one value each)
+    that its configurations start from, e.g. a tuned preset; `hyperparams` override them.
 
     Seeds are paired by design: every configuration with seed s starts from `jax.random.PRNGKey(s)`, whatever its
     cost, agent or hyperparameters, so configurations that differ only in cost share their network initialisation,
@@ -51,6 +52,7 @@ class SweepSpec:
     vanilla: bool = False
     mode: str = "last"
     hyperparams: Mapping[str, Any] = field(default_factory=dict)
+    env_defaults: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return json.loads(json.dumps(dataclasses.asdict(self), default=list))
@@ -94,10 +96,14 @@ def split_hyperparam(name: str) -> tuple[str | None, str]:
 
 def agent_hyperparams(spec: SweepSpec, agent: str) -> dict[str, tuple[str, Any]]:
     """The hyperparameters that apply to `agent`: config field -> (the spec's key, its value); scoped keys win."""
+    return _applicable(spec.hyperparams, agent)
+
+
+def _applicable(hyperparams: Mapping[str, Any], agent: str) -> dict[str, tuple[str, Any]]:
     fields = ALGORITHMS[agent].config_type.__dataclass_fields__
     chosen: dict[str, tuple[str, Any]] = {}
     for scoped in (False, True):
-        for key, value in spec.hyperparams.items():
+        for key, value in hyperparams.items():
             scope, name = split_hyperparam(key)
             if (scope is not None) == scoped and scope in (None, agent) and name in fields:
                 chosen[name] = (key, value)
@@ -147,6 +153,12 @@ def validate_spec(spec: SweepSpec) -> None:
                 f"allowed: {', '.join(sorted(_all_fields(agents)))}"
             )
         _as_values(key, value)
+    for env_id, defaults in spec.env_defaults.items():
+        for key, value in defaults.items():
+            name = split_hyperparam(key)[1]
+            if isinstance(value, list) or name in SCHEDULE_FIELDS + GRID_FIELDS or name not in _all_fields(
+                    sorted(ALGORITHMS)):
+                raise ValueError(f"env_defaults[{env_id!r}][{key!r}]: allowed: one value of an agent config field")
 
 
 def _all_fields(agents: Sequence[str]) -> set[str]:
@@ -192,6 +204,7 @@ def _runs(spec: SweepSpec) -> Iterator[RunConfig]:
     """The grid's configurations in order, their agent configs not yet validated."""
     for env, agent in itertools.product(spec.envs, spec.agents):
         config_type = ALGORITHMS[agent].config_type
+        defaults = {name: value for name, (_, value) in _applicable(spec.env_defaults.get(env, {}), agent).items()}
         applies = agent_hyperparams(spec, agent)  # field -> (spec key, value)
         own = {key: _as_values(key, value) for key, value in applies.values()}
         field_of = {key: name for name, (key, _) in applies.items()}
@@ -208,7 +221,7 @@ def _runs(spec: SweepSpec) -> Iterator[RunConfig]:
                 total_timesteps=spec.total_timesteps,
                 eval_every=spec.eval_every,
                 eval_episodes=spec.eval_episodes,
-                **{field_of[k]: tuple(v) if isinstance(v, list) else v for k, v in hp.items()},
+                **{**defaults, **{field_of[k]: tuple(v) if isinstance(v, list) else v for k, v in hp.items()}},
             )
             yield RunConfig(config_id(env, agent, vanilla, cost, seed, hp), env, agent, vanilla, cost, seed, hp,
                             config)

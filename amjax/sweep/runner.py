@@ -212,7 +212,8 @@ def _claim_folder(out: Path, spec: SweepSpec, runs: Sequence[RunConfig], extra: 
     """Write the sweep's metadata to a new folder, or check that an existing folder holds the same sweep."""
     meta_path = out / "metadata.json"
     if meta_path.exists():
-        if json.loads(meta_path.read_text()).get("spec") != spec.to_json():
+        stored = json.loads(meta_path.read_text()).get("spec")
+        if stored is None or SweepSpec.from_json(stored).to_json() != spec.to_json():  # older files: defaults filled
             raise SweepMismatchError(
                 f"out: {out} holds a different sweep (see its metadata.json); choose another folder"
             )

@@ -287,3 +287,17 @@ def test_cli_accepts_any_budget_and_records_the_rounding(tmp_path, capsys):
     with pytest.raises(ValueError, match="nearest valid values: eval_every=256, total_timesteps=1024"):
         expand(SweepSpec(agents=("ppo",), total_timesteps=1000, eval_every=300,
                          hyperparams={"num_envs": 4, "num_steps": 32}))
+
+
+def test_env_defaults_apply_per_env_and_flags_override_them():
+    spec = SweepSpec(envs=("CartPole-v0", "Acrobot-v1"), agents=("ppo", "dqn"), costs=(0.1,), seeds=(0,),
+                     total_timesteps=20480, eval_every=10240, hyperparams={"dqn.gamma": 0.9},
+                     env_defaults={"Acrobot-v1": {"ppo.ent_coef": 0.0, "gamma": 0.95}})
+    configs = {(r.env, r.agent): r for r in expand(spec)}
+    assert configs["Acrobot-v1", "ppo"].config.ent_coef == 0.0 and configs["Acrobot-v1", "ppo"].config.gamma == 0.95
+    assert configs["CartPole-v0", "ppo"].config.ent_coef == 0.01 and configs["CartPole-v0", "ppo"].config.gamma == 0.99
+    assert configs["Acrobot-v1", "dqn"].config.gamma == 0.9  # the sweep's own value wins over the env's default
+    assert configs["Acrobot-v1", "ppo"].hyperparams == {}  # defaults are not swept columns
+    for bad in ({"nope": 1}, {"gamma": [0.9, 0.99]}, {"total_timesteps": 10}):
+        with pytest.raises(ValueError, match="env_defaults"):
+            expand(SweepSpec(env_defaults={"Acrobot-v1": bad}))
