@@ -3,6 +3,12 @@
 One `update`: roll out `num_steps` steps of `num_envs` envs -> GAE advantages -> `update_epochs` epochs of
 `num_minibatches` clipped-objective minibatch steps. Truncated episodes bootstrap from the value of the
 pre-reset observation; terminated ones do not.
+
+`reward_scale` multiplies the rewards (measurement costs included) before GAE: the critic must reach the returns'
+scale within the first few dozen updates (value clipping moves it at most `clip_eps` per update, Adam's step size
+bounds it without). On Acrobot-v1 (-1 per step, returns -60 to -100) unscaled rewards left the critic far behind,
+the advantages reduced to the next steps' measurement costs, and PPO stopped measuring under a cost of 0.2 or more
+(docs/acrobot.md); the presets scale Acrobot's rewards by 0.1.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ from amjax.agents.training import (
     in_groups,
     make_train,
 )
-from amjax.validation import check_choice, check_positive_int
+from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 
 
 @struct.dataclass
@@ -40,6 +46,10 @@ class PPOConfig(AgentConfig):
     activation: str = static("tanh")
     shared_network: bool = static(False)  # one torso for actor and critic
     anneal_lr: bool = static(True)  # linear decay of the learning rate to 0 over training
+    clip_value: bool = static(True)  # clip the value update to clip_eps around the rollout's values
+    # Rewards (costs included) are multiplied by this before GAE and the value targets. Static: a per-environment
+    # constant, and at 1.0 the program is exactly today's (a traced 1.0 changes XLA's float rounding).
+    reward_scale: float = static(1.0)
     learning_rate: float = 1e-3
     gamma: float = 0.99
     gae_lambda: float = 0.95
@@ -65,6 +75,8 @@ class PPOConfig(AgentConfig):
         for name in ("num_envs", "num_steps", "update_epochs", "num_minibatches"):
             check_positive_int(name, getattr(self, name))
         check_choice("activation", self.activation, ("tanh", "relu", "elu"))
+        check_bool("clip_value", self.clip_value)
+        check_real("reward_scale", self.reward_scale, low=0.0, low_inclusive=False)
         if self.steps_per_update() % self.num_minibatches:
             raise ValueError(
                 f"num_minibatches={self.num_minibatches} must divide num_envs * num_steps "
@@ -136,8 +148,9 @@ def gae(
 def rollout_advantages(config: PPOConfig, transitions: Any, values: jax.Array, next_values: jax.Array):
     """`gae` of a rollout's transitions ([T, E]): advantages and value targets, with `next_values` the values of
     the pre-reset next observations (so a truncated episode bootstraps and a terminated one does not)."""
+    rewards = transitions.reward if config.reward_scale == 1.0 else config.reward_scale * transitions.reward
     return gae(
-        transitions.reward,
+        rewards,
         values,
         next_values,
         transitions.terminated.astype(jnp.float32),
@@ -158,11 +171,15 @@ def clipped_loss(
     target: jax.Array,
 ) -> jax.Array:
     """The PPO loss on a batch of any shape [...]: clipped policy objective (advantages normalised over the
-    batch) + vf_coef x clipped value loss - ent_coef x entropy. `config` supplies clip_eps, vf_coef, ent_coef."""
+    batch) + vf_coef x value loss (clipped if `config.clip_value`) - ent_coef x entropy. `config` supplies
+    clip_eps, clip_value, vf_coef, ent_coef."""
     log_softmax = jax.nn.log_softmax(logits)
     log_prob = jnp.take_along_axis(log_softmax, action[..., None], -1)[..., 0]
-    value_clipped = old_value + jnp.clip(value - old_value, -config.clip_eps, config.clip_eps)
-    value_loss = 0.5 * jnp.maximum((value - target) ** 2, (value_clipped - target) ** 2).mean()
+    value_loss = (value - target) ** 2
+    if config.clip_value:
+        value_clipped = old_value + jnp.clip(value - old_value, -config.clip_eps, config.clip_eps)
+        value_loss = jnp.maximum(value_loss, (value_clipped - target) ** 2)
+    value_loss = 0.5 * value_loss.mean()
     ratio = jnp.exp(log_prob - old_log_prob)
     advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
     policy_loss = -jnp.minimum(
