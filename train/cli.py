@@ -12,15 +12,17 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+import jax
 import pandas as pd
 
 from amjax.agents import ALGORITHMS
 from amjax.envs.registry import registered_envs
-from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, run_sweep
-from amjax.sweep.grid import expand, round_schedule
+from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep
+from amjax.sweep.grid import MAX_CONFIGS, expand, round_schedule
+from amjax.sweep.storage import UnreadableFileError
 from train import replicate, report
 from train.flags import add_logging_arguments, make_loggers
-from train.presets import PRESETS
+from train.presets import PRESETS, REPLICATE_HYPERPARAMS
 
 
 def _parse_value(text: str) -> Any:
@@ -88,6 +90,9 @@ def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
     sweep.add_argument("--set", action="append", default=[], metavar="NAME=V[,V...]",
                        help="a hyperparameter value or list of values, e.g. learning_rate=1e-3,3e-4 or ppo.num_envs=16 "
                        "(traced fields are vmapped; static ones such as hidden=(128,128) compile separately)")
+    sweep.add_argument("--env-defaults", action=argparse.BooleanOptionalAction, default=True,
+                       help="start each env from its tuned hyperparameters (train/presets.py: Acrobot-v1's and "
+                       "LunarLander-v3's PPO); --set values override them")
     sweep.add_argument("--out", required=True, help="output folder (rerun with the same folder to resume)")
     sweep.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
     sweep.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -116,8 +121,8 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     if args.seeds is not None and args.seed_list:
         raise ValueError("--seeds and --seed-list: give one of them")
     if args.seeds is not None:
-        if args.seeds < 1:
-            raise ValueError(f"--seeds: got {args.seeds}; allowed values: integers >= 1")
+        if not 1 <= args.seeds <= MAX_CONFIGS:
+            raise ValueError(f"--seeds: got {args.seeds}; allowed values: integers in [1, {MAX_CONFIGS:,}]")
         changes["seeds"] = tuple(range(args.seeds))
     if args.seed_list:
         changes["seeds"] = tuple(args.seed_list)
@@ -133,7 +138,11 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     for env in changes.get("envs", ()):
         if env not in registered_envs():
             raise ValueError(f"--env: unknown environment {env!r}; allowed values: {', '.join(registered_envs())}")
-    return dataclasses.replace(spec, **changes)
+    spec = dataclasses.replace(spec, **changes)
+    if args.env_defaults:
+        spec = dataclasses.replace(spec, env_defaults={
+            env: dict(REPLICATE_HYPERPARAMS[env]) for env in spec.envs if env in REPLICATE_HYPERPARAMS})
+    return spec
 
 
 def format_table(table: pd.DataFrame) -> str:
@@ -209,8 +218,15 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m train") -> in
     try:
         result = run_sweep(spec, args.out, max_batch=max_batch, progress=not args.no_progress, loggers=loggers,
                            metadata=metadata)
-    except (SweepMismatchError, FolderBusyError) as error:
+    except (SweepMismatchError, FolderBusyError, SweepTooLargeError, UnreadableFileError) as error:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
+        return 2
+    except jax.errors.JaxRuntimeError as error:  # what the memory check cannot foresee (evaluation batches, XLA)
+        if "RESOURCE_EXHAUSTED" not in str(error):
+            raise
+        print(f"{parser.prog}: error: out of memory ({str(error).splitlines()[0][:200]}); results so far are kept "
+              f"in {args.out}: lower --max-batch or the sizes (num_envs, buffer_size, --eval-episodes)",
+              file=sys.stderr)
         return 2
     print()
     print("Median [interquartile range] over seeds of the best greedy test costed reward (the paper's metric, biased")

@@ -28,6 +28,11 @@ _BOUNDS = {
 }
 
 
+MAX_STEPS = 2**31 - 1  # env-step counters are int32
+MAX_EPISODES = 65_536  # test episodes run side by side: one batch of envs per configuration
+MAX_WIDTH = 65_536  # a network layer's width
+
+
 def static(default: Any) -> Any:
     """A config field that sets a shape or a count: part of the compiled program, never vmapped."""
     return struct.field(pytree_node=False, default=default)
@@ -103,10 +108,18 @@ class AgentConfig:
             check_real(name, value, **_BOUNDS[kind])
         if self.vanilla and not isinstance(self.cost, jax.core.Tracer) and np.any(np.asarray(self.cost)):
             raise ValueError("cost: a vanilla run has no measurement cost; allowed values: 0")
-        check_positive_int("total_timesteps", self.total_timesteps)
-        check_positive_int("eval_every", self.eval_every)
-        check_positive_int("eval_episodes", self.eval_episodes)
-        check_positive_int("rescore_episodes", self.rescore_episodes)
+        check_positive_int("total_timesteps", self.total_timesteps, maximum=MAX_STEPS)
+        check_positive_int("eval_every", self.eval_every, maximum=MAX_STEPS)
+        check_positive_int("eval_episodes", self.eval_episodes, maximum=MAX_EPISODES)
+        check_positive_int("rescore_episodes", self.rescore_episodes, maximum=MAX_EPISODES)
+        for name in self.static_fields():  # network widths: tuples of positive integers
+            value = getattr(self, name)
+            if isinstance(type(self).__dataclass_fields__[name].default, tuple) and (
+                not isinstance(value, tuple | list) or not all(
+                    isinstance(v, int | np.integer) and not isinstance(v, bool) and 1 <= v <= MAX_WIDTH
+                    for v in value)):
+                raise ValueError(f"{name}: got {value!r}; allowed values: a tuple of integers in [1, {MAX_WIDTH:,}], "
+                                 "e.g. (64, 64), or () for none")
         steps = self.steps_per_update()
         if self.eval_every % steps or self.total_timesteps % self.eval_every:
             every = max(steps, round(self.eval_every / steps) * steps)

@@ -72,12 +72,16 @@ def load_results(path: str | Path) -> SweepData:
         raise NotASweepError(f"{meta_path}: unreadable ({error})") from None
     if not isinstance(metadata, dict) or "spec" not in metadata:
         raise NotASweepError(f"{meta_path}: not a sweep's metadata (no 'spec')")
-    results = storage.read_table(path / "results")
+    try:
+        results = storage.read_table(path / "results")
+        rescored = storage.read_table(path / "rescored")
+    except storage.UnreadableFileError as error:
+        raise NotASweepError(str(error)) from None
     if results is None or results.empty:
         raise NotASweepError(f"{path}: the sweep has no results yet (no evaluation has finished)")
     if "eval_measured_fraction" not in results:
         results["eval_measured_fraction"] = results.eval_measurements / results.eval_length
-    summary = storage.summarize(results, hyper_columns(results), storage.read_table(path / "rescored"))
+    summary = storage.summarize(results, hyper_columns(results), rescored)
     return SweepData(results, summary, metadata)
 
 

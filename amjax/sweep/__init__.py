@@ -2,7 +2,14 @@
 
 from amjax.files import FolderBusyError
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
-from amjax.sweep.runner import SweepMismatchError, SweepResult, load_sweep_policy, policy_path, run_sweep
+from amjax.sweep.runner import (
+    SweepMismatchError,
+    SweepResult,
+    SweepTooLargeError,
+    load_sweep_policy,
+    policy_path,
+    run_sweep,
+)
 
 __all__ = [
     "FolderBusyError",
@@ -10,6 +17,7 @@ __all__ = [
     "SweepMismatchError",
     "SweepResult",
     "SweepSpec",
+    "SweepTooLargeError",
     "expand",
     "group_runs",
     "load_sweep_policy",

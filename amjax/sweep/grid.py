@@ -111,12 +111,19 @@ def _applicable(hyperparams: Mapping[str, Any], agent: str) -> dict[str, tuple[s
 
 
 MAX_SEED = 2**32  # seeds are 32-bit (`jax.random.PRNGKey` without x64)
+MAX_CONFIGS = 1_000_000  # configurations in one sweep
 
 
 def validate_spec(spec: SweepSpec) -> None:
     """Check the whole spec on concrete values (before anything is written or compiled)."""
     if not spec.envs or not spec.agents or not spec.seeds:
         raise ValueError("envs, agents and seeds must each name at least one value")
+    size = len(spec.envs) * len(spec.agents) * (len(spec.costs) + spec.vanilla) * len(spec.seeds)
+    for value in spec.hyperparams.values():
+        size *= len(value) if isinstance(value, list) else 1
+    if size > MAX_CONFIGS:
+        raise ValueError(f"the grid has {size:,} configurations; allowed: at most {MAX_CONFIGS:,} in one sweep "
+                         "(split it into several sweeps)")
     for env_id in spec.envs:
         make_env(env_id)
     for agent in spec.agents:
@@ -189,7 +196,7 @@ def round_schedule(spec: SweepSpec) -> tuple[SweepSpec, str | None]:
     train_freq, ...) and whole evaluation periods; plus a one-line note of what changed (None if nothing did).
     What a command line offers for any budget; the Python API stays strict."""
     validate_spec(spec)
-    unit = math.lcm(*{run.config.steps_per_update() for run in _runs(spec)})
+    unit = math.lcm(*{_steps_per_update(run.config) for run in _runs(spec)})
     total = max(1, spec.total_timesteps)
     every = max(unit, round(min(spec.eval_every, total) / unit) * unit)
     total = max(every, round(total / every) * every)
@@ -198,6 +205,18 @@ def round_schedule(spec: SweepSpec) -> tuple[SweepSpec, str | None]:
     note = (f"steps {spec.total_timesteps:,} and eval-every {spec.eval_every:,} rounded to {total:,} and {every:,}: "
             f"whole updates of every agent (a multiple of {unit:,} env steps) and whole evaluation periods")
     return dataclasses.replace(spec, total_timesteps=total, eval_every=every), note
+
+
+def _steps_per_update(config: AgentConfig) -> int:
+    """Env steps per update; where the fields that set it are invalid, the config's own checks name them."""
+    try:
+        steps = config.steps_per_update()
+    except (TypeError, ValueError, ZeroDivisionError):
+        steps = None
+    if not isinstance(steps, int) or steps < 1:
+        config.validate()  # each agent checks its own fields before the schedule
+        raise ValueError(f"{type(config).__name__}: env steps per update must be a positive integer, got {steps!r}")
+    return steps
 
 
 def _runs(spec: SweepSpec) -> Iterator[RunConfig]:

@@ -12,6 +12,7 @@ import functools
 import json
 import math
 import operator
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -35,6 +36,10 @@ from amjax.sweep.loggers import RunLogger
 
 class SweepMismatchError(ValueError):
     """The output folder holds a different sweep."""
+
+
+class SweepTooLargeError(ValueError):
+    """A batch's train states would not fit in this machine's memory."""
 
 
 @dataclass(frozen=True)
@@ -130,6 +135,29 @@ def _rescored_rows(batch: _Batch, configs: Any, states: Any, devices: tuple[jax.
     })
 
 
+def _check_memory(batches: Sequence[_Batch], memory: int) -> None:
+    """Refuse, before anything is written or compiled, a batch whose train states (sized without allocating them:
+    `jax.eval_shape`) would not fit in `memory` bytes three times over (the states, the chunk's new states and
+    the checkpoint's copy)."""
+    sizes: dict[tuple[Any, ...], int] = {}
+    for batch in batches:
+        key = (batch.runs[0].config.static_key(), batch.size)
+        if key not in sizes:
+            configs, keys = batch.stacked()
+            shapes = jax.eval_shape(
+                lambda c, k, algo=batch.algo: jax.lax.map(lambda ck: init_run(algo, *ck), (c, k)), configs, keys)
+            sizes[key] = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes))
+        if 3 * sizes[key] > memory:
+            raise SweepTooLargeError(
+                f"the train states of {batch.size} {batch.algo.name} configurations take "
+                f"{sizes[key] / 2**30:.1f} GiB (3x that while training) and this machine has {memory / 2**30:.1f} "
+                "GiB: lower --max-batch (max_batch), or the fields that size them (num_envs, buffer_size, ...)")
+
+
+def _memory_bytes() -> int:
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
 def _real(batch: _Batch, tree: Any) -> Any:
     """The rows of a batched pytree that belong to real (not padding) configurations."""
     return jax.tree.map(lambda x: x[: len(batch.runs)], tree)
@@ -208,18 +236,30 @@ def _cell(value: Any) -> Any:
     return "x".join(map(str, value)) if isinstance(value, list | tuple) else value
 
 
+def _check_folder(out: Path, spec: SweepSpec) -> bool:
+    """Whether `out` already holds this sweep (False: a new folder); SweepMismatchError if it holds anything else
+    that claims to be a sweep. Reads only."""
+    if out.exists() and not out.is_dir():
+        raise SweepMismatchError(f"out: {out} is a file; give a folder")
+    meta_path = out / "metadata.json"
+    if not meta_path.exists():
+        return False
+    try:
+        stored = json.loads(meta_path.read_text()).get("spec")
+        stored = SweepSpec.from_json(stored) if stored is not None else None
+    except (ValueError, TypeError, AttributeError) as error:
+        raise SweepMismatchError(
+            f"out: {meta_path} is not a sweep's metadata ({error}); choose another folder") from None
+    if stored is None or stored.to_json() != spec.to_json():  # older files: defaults filled
+        raise SweepMismatchError(f"out: {out} holds a different sweep (see its metadata.json); choose another folder")
+    return True
+
+
 def _claim_folder(out: Path, spec: SweepSpec, runs: Sequence[RunConfig], extra: Mapping[str, Any]) -> None:
     """Write the sweep's metadata to a new folder, or check that an existing folder holds the same sweep."""
-    meta_path = out / "metadata.json"
-    if meta_path.exists():
-        stored = json.loads(meta_path.read_text()).get("spec")
-        if stored is None or SweepSpec.from_json(stored).to_json() != spec.to_json():  # older files: defaults filled
-            raise SweepMismatchError(
-                f"out: {out} holds a different sweep (see its metadata.json); choose another folder"
-            )
-    else:
+    if not _check_folder(out, spec):
         storage.write_json(
-            meta_path,
+            out / "metadata.json",
             {"spec": spec.to_json(), "agent_configs": _group_configs(runs), **storage.environment_info(), **extra},
         )
 
@@ -332,12 +372,20 @@ def run_sweep(
 
     Raises:
       SweepMismatchError: `out` holds a different sweep.
+      SweepTooLargeError: a batch's train states would not fit in memory (checked before anything is written).
       FolderBusyError: another running process is writing to `out`.
     """
     runs = expand(spec)  # validates everything before touching the disk
     out = Path(out)
     hyper_columns = sorted({k for r in runs for k in r.hyperparams})
     devices = tuple(devices or sweep_devices())
+    batches = _batches(runs, max_batch, len(devices))
+    _check_memory(batches, _memory_bytes())
+    _check_folder(out, spec)  # before the lock file: a foreign folder is left as it was
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise SweepMismatchError(f"out: cannot create the folder {out} ({error.strerror})") from None
     with folder_lock(out):  # one writer per folder; the lock dies with the process, however it dies
         remove_partial_writes(out)  # temporary files of writes that a killed run left unfinished
         _claim_folder(out, spec, runs, metadata or {})
@@ -347,7 +395,7 @@ def run_sweep(
         total_steps = len(runs) * spec.total_timesteps
         bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
         try:
-            for batch in _batches(runs, max_batch, len(devices)):
+            for batch in batches:
                 results, rescored = _train_batch(
                     batch, out, results, hyper_columns, bar, target_chunks=target_chunks,
                     checkpoint_every_s=checkpoint_every_s, save_policies=save_policies, on_chunk=on_chunk,

@@ -41,9 +41,22 @@ def write_table(path_stem: Path, table: pd.DataFrame) -> None:
     atomic_write(path_stem.with_suffix(".csv"), lambda tmp: table.to_csv(tmp, index=False))
 
 
+class UnreadableFileError(ValueError):
+    """A file of a sweep folder that is corrupt, truncated or of another format; nothing is overwritten."""
+
+
 def read_table(path_stem: Path) -> pd.DataFrame | None:
+    """The Parquet table `path_stem`.parquet, or None if there is none; UnreadableFileError if it is corrupt."""
     path = path_stem.with_suffix(".parquet")
-    return pd.read_parquet(path) if path.exists() else None
+    if not path.exists():
+        return None
+    try:
+        return pd.read_parquet(path)
+    except Exception as error:  # truncated or foreign: pyarrow raises several kinds
+        raise UnreadableFileError(
+            f"{path} is unreadable ({type(error).__name__}: {str(error)[:200]}); restore it from the CSV beside it "
+            "or a backup, or choose another folder (nothing was overwritten)"
+        ) from None
 
 
 def merge_rows(old: pd.DataFrame | None, new: pd.DataFrame) -> pd.DataFrame:
@@ -99,12 +112,13 @@ def load_checkpoint(path: Path, like: Any) -> tuple[Any, int]:
         stored = [payload["leaves"][str(i)] for i in range(len(payload["leaves"]))]
         evals_done = int(payload["evals_done"])
     except Exception as error:  # corrupt or truncated file
-        raise ValueError(f"checkpoint {path} is unreadable ({error}); delete it to restart that batch") from None
+        raise UnreadableFileError(
+            f"checkpoint {path} is unreadable ({error}); delete it to restart that batch") from None
     leaves, treedef = jax.tree.flatten(like)
     if len(stored) != len(leaves) or any(
         s.shape != np.shape(x) or s.dtype != np.asarray(x).dtype for s, x in zip(stored, leaves, strict=True)
     ):
-        raise ValueError(f"checkpoint {path} does not match this sweep's train state; delete it to restart")
+        raise UnreadableFileError(f"checkpoint {path} does not match this sweep's train state; delete it to restart")
     return jax.tree.unflatten(treedef, stored), evals_done
 
 

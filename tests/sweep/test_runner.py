@@ -301,3 +301,17 @@ def test_env_defaults_apply_per_env_and_flags_override_them():
     for bad in ({"nope": 1}, {"gamma": [0.9, 0.99]}, {"total_timesteps": 10}):
         with pytest.raises(ValueError, match="env_defaults"):
             expand(SweepSpec(env_defaults={"Acrobot-v1": bad}))
+
+
+def test_cli_sweep_starts_each_env_from_its_tuned_defaults():
+    from train.cli import build_parser, spec_from_args
+
+    args = build_parser().parse_args(["sweep", "--env", "CartPole-v0", "Acrobot-v1", "--agent", "ppo", "dqn",
+                                      "--set", "ppo.ent_coef=0.05", "--out", "x"])
+    configs = {(r.env, r.agent): r.config for r in expand(spec_from_args(args))}
+    assert configs["Acrobot-v1", "ppo"].reward_scale == 0.1  # train/presets.py's Acrobot PPO
+    assert configs["Acrobot-v1", "ppo"].ent_coef == pytest.approx(0.05)  # --set wins
+    assert configs["CartPole-v0", "ppo"].reward_scale == 1.0
+    args = build_parser().parse_args(["sweep", "--env", "Acrobot-v1", "--agent", "ppo", "--no-env-defaults",
+                                      "--out", "x"])
+    assert expand(spec_from_args(args))[0].config.reward_scale == 1.0

@@ -1,0 +1,177 @@
+"""The bad-input corpus: every command and the public entry points given bad values. Each case must end with a clear
+message naming the argument (command line: exit status 2 and no traceback), before anything is compiled or written,
+and lose nothing already written."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from amjax.agents import DQNConfig, PolicyFileError, PPOConfig, load_policy
+from amjax.analysis import NotASweepError, load_results
+from amjax.sweep import SweepMismatchError, SweepSpec, SweepTooLargeError, expand, run_sweep
+from amjax.sweep.storage import UnreadableFileError
+from train.cli import main
+
+TINY_FLAGS = ["--agent", "ppo", "--cost", "0.1", "--seeds", "1", "--steps", "2048", "--eval-every", "1024",
+              "--eval-episodes", "2", "--set", "num_envs=4", "--set", "num_steps=32", "--set", "rescore_episodes=2",
+              "--no-progress"]
+
+# (flags after `sweep --agent ppo`, a piece of the message): values a user can mistype.
+SWEEP_CASES = [
+    (["--cost", "nan"], "cost: got nan"),
+    (["--cost", "inf"], "cost: got inf"),
+    (["--cost", "-0.1"], "cost: got -0.1"),
+    (["--cost", "abc"], "argument --cost: invalid float value"),
+    (["--cost"], "argument --cost: expected at least one argument"),
+    (["--env"], "argument --env: expected at least one argument"),
+    (["--env", ""], "--env: unknown environment ''"),
+    (["--env", "CartPole-v9"], "--env: unknown environment 'CartPole-v9'"),
+    (["--agent", "sac"], "--agent: unknown agent 'sac'"),
+    (["--mode", "sometimes"], "argument --mode: invalid choice"),
+    (["--seeds", "0"], "--seeds: got 0"),
+    (["--seeds", "-3"], "--seeds: got -3"),
+    (["--seeds", "1.5"], "argument --seeds: invalid int value"),
+    (["--seeds", "1000000000000"], "--seeds: got 1000000000000"),
+    (["--seed-list", "-1"], "seed: got -1"),
+    (["--seed-list", "4294967296"], "seed: got 4294967296"),
+    (["--seed-list", "3", "3"], "seeds: repeated values"),
+    (["--seeds", "2", "--seed-list", "1"], "--seeds and --seed-list"),
+    (["--steps", "0"], "--steps: got 0"),
+    (["--steps", "-5"], "--steps: got -5"),
+    (["--steps", "1e6"], "argument --steps: invalid int value"),
+    (["--steps", "100000000000000"], "total_timesteps: got"),
+    (["--eval-every", "0"], "--eval-every: got 0"),
+    (["--eval-episodes", "0"], "eval_episodes: got 0"),
+    (["--eval-episodes", "1000000000"], "eval_episodes: got 1000000000"),
+    (["--max-batch", "0"], "--max-batch: got 0"),
+    (["--max-batch", "-1"], "--max-batch: got -1"),
+    (["--set", "learning_rate=nan"], "learning_rate: got 'nan'"),
+    (["--set", "learning_rate=inf"], "learning_rate: got 'inf'"),
+    (["--set", "learning_rate=-1"], "learning_rate: got -1"),
+    (["--set", "learning_rate=abc"], "learning_rate: expected a real number"),
+    (["--set", "learning_rate=[]"], "learning_rate: an empty list"),
+    (["--set", "gamma=1.5"], "gamma: got 1.5"),
+    (["--set", "num_envs=0"], "num_envs: got 0"),
+    (["--set", "num_envs=1.5"], "num_envs: got 1.5"),
+    (["--set", "num_envs=abc"], "num_envs: got 'abc'"),
+    (["--set", "num_envs=1000000000"], "total_timesteps: got"),
+    (["--set", "hidden=(0,)"], "hidden: got (0,)"),
+    (["--set", "hidden=(64,-1)"], "hidden: got (64, -1)"),
+    (["--set", "rescore_episodes=0"], "rescore_episodes: got 0"),
+    (["--set", "no_such_field=3"], "no_such_field"),
+    (["--set", "total_timesteps=1000"], "total_timesteps is set for the whole sweep"),
+    (["--set", "cost=0.5"], "cost is a grid axis"),
+    (["--set", "dqn.gamma=0.9"], "agent 'dqn' is not in this sweep's agents"),
+    (["--set", "=3"], "--set: expected NAME=VALUE"),
+    (["--set", "gamma"], "--set: expected NAME=VALUE"),
+]
+
+
+def _run(argv, capsys) -> tuple[int, str]:
+    try:
+        code = main(argv)
+    except SystemExit as exit_info:
+        code = exit_info.code
+    err = capsys.readouterr().err
+    return code, err
+
+
+@pytest.mark.parametrize(("flags", "message"), SWEEP_CASES, ids=[" ".join(c[0]) or "empty" for c in SWEEP_CASES])
+def test_sweep_flag_corpus(tmp_path, capsys, flags, message):
+    out = tmp_path / "never"
+    code, err = _run(["sweep", "--agent", "ppo", "--out", str(out), *flags], capsys)
+    assert code == 2 and message in err and "Traceback" not in err, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--seeds", "0"], "--seeds: got 0"),
+    (["--env", "Pong-v0"], "--env: no replication budget for Pong-v0"),
+    (["--agent", "sarsa"], "sarsa"),
+    (["--max-batch", "0"], "--max-batch: got 0"),
+    (["--seeds", "x"], "argument --seeds: invalid int value"),
+])
+def test_replicate_flag_corpus(tmp_path, capsys, flags, message):
+    code, err = _run(["replicate", "--out", str(tmp_path / "never"), *flags], capsys)
+    assert code == 2 and message in err and "Traceback" not in err
+    assert not (tmp_path / "never").exists()
+
+
+def test_out_that_is_not_a_folder(tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    for out, message in ((afile, "is a file; give a folder"), (afile / "sub", "cannot create the folder")):
+        code, err = _run(["sweep", *TINY_FLAGS, "--out", str(out)], capsys)
+        assert code == 2 and "out: " in err and str(out) in err and message in err and "Traceback" not in err
+    assert afile.read_text() == "mine"
+
+
+def test_foreign_folder_is_refused_untouched(tmp_path, capsys):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "metadata.json").write_text("{not json")
+    code, err = _run(["sweep", *TINY_FLAGS, "--out", str(foreign)], capsys)
+    assert code == 2 and "is not a sweep's metadata" in err
+    assert [p.name for p in foreign.iterdir()] == ["metadata.json"]
+    code, err = _run(["report", str(foreign)], capsys)
+    assert code == 2 and "metadata.json: unreadable" in err and "Traceback" not in err
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("bad") / "run"
+    assert main(["sweep", *TINY_FLAGS, "--out", str(out)]) == 0
+    return out
+
+
+def test_truncated_results_are_refused_and_kept(finished, tmp_path, capsys):
+    out = shutil.copytree(finished, tmp_path / "run")
+    parquet = out / "results.parquet"
+    parquet.write_bytes(parquet.read_bytes()[:40])
+    before = parquet.read_bytes()
+    code, err = _run(["sweep", *TINY_FLAGS, "--out", str(out)], capsys)
+    assert code == 2 and "results.parquet is unreadable" in err and "Traceback" not in err
+    assert parquet.read_bytes() == before  # nothing overwritten
+    code, err = _run(["report", str(out)], capsys)
+    assert code == 2 and "results.parquet is unreadable" in err
+    with pytest.raises(NotASweepError, match="unreadable"):
+        load_results(out)
+
+
+def test_corrupt_checkpoint_and_policy(finished, tmp_path, capsys):
+    out = shutil.copytree(finished, tmp_path / "run")
+    (checkpoint,) = (out / "checkpoints").glob("*.msgpack")
+    checkpoint.write_bytes(b"\x00garbage")
+    (out / "results.parquet").unlink()  # so the rerun has a batch to resume from the checkpoint
+    code, err = _run(["sweep", *TINY_FLAGS, "--out", str(out)], capsys)
+    assert code == 2 and "is unreadable" in err and "delete it" in err and "Traceback" not in err
+    (policy,) = (out / "policies").glob("*.msgpack")
+    policy.write_bytes(policy.read_bytes()[:100])
+    with pytest.raises(PolicyFileError):
+        load_policy(policy)
+
+
+def test_python_api_errors_name_the_argument():
+    with pytest.raises(ValueError, match="eval_every=300 must be a multiple .* nearest valid values"):
+        PPOConfig(total_timesteps=1000, eval_every=300).validate()
+    with pytest.raises(ValueError, match="hidden: got"):
+        DQNConfig(hidden=(0,)).validate()
+    with pytest.raises(ValueError, match="the grid has 2,000,000 configurations"):
+        expand(SweepSpec(agents=("ppo",), costs=(0.1,), seeds=tuple(range(2_000_000))))
+    with pytest.raises(ValueError, match="cost: got -1"):
+        expand(SweepSpec(agents=("ppo",), costs=(-1.0,)))
+
+
+def test_a_batch_too_large_for_memory_is_refused_before_writing(tmp_path):
+    spec = SweepSpec(agents=("dqn",), costs=(0.1,), seeds=(0, 1), total_timesteps=4096, eval_every=1024,
+                     hyperparams={"buffer_size": 4_000_000_000})
+    with pytest.raises(SweepTooLargeError, match="GiB .* lower --max-batch"):
+        run_sweep(spec, tmp_path / "never", progress=False)
+    assert not (tmp_path / "never").exists()
+    with pytest.raises(SweepMismatchError, match="is a file"):
+        (tmp_path / "f").write_text("x")
+        run_sweep(SweepSpec(agents=("ppo",), seeds=(0,)), tmp_path / "f", progress=False)
+    assert issubclass(UnreadableFileError, ValueError)
