@@ -16,13 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from amjax.envs.lunar_lander import (
-    EnvParams,
-    LunarLander,
-    free_flight_replay,
-    heuristic_action,
-    load_gymnasium_lunar_lander,
-)
+from amjax.envs.lunar_lander import EnvParams, LunarLander, heuristic_action
+from amjax.envs.lunar_lander.reference import free_flight_replay, load_gymnasium_lunar_lander
 
 MAX_STEPS = 1000
 

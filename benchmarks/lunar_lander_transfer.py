@@ -79,7 +79,7 @@ def make_gymnasium_env():
     import gymnasium
     from gymnasium.error import DependencyNotInstalled
 
-    from amjax.envs.lunar_lander import load_gymnasium_lunar_lander
+    from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander
 
     try:
         return gymnasium.make(ENV_ID)

@@ -16,29 +16,29 @@ import numpy as np
 import pytest
 
 from amjax.envs import lunar_lander as ll
-from amjax.envs.lunar_lander import EnvParams, LunarLander
+from amjax.envs.lunar_lander import EnvParams, LunarLander, reference
 
 
 def _gymnasium():
     pytest.importorskip("Box2D")
-    return ll.load_gymnasium_lunar_lander()
+    return reference.load_gymnasium_lunar_lander()
 
 
 def _recorded_env(module, seed: int, continuous: bool = False):
     env = module.LunarLander(continuous=continuous)
-    recorder = ll.DrawRecorder(np.random.default_rng(seed))
+    recorder = reference.DrawRecorder(np.random.default_rng(seed))
     env.np_random = recorder
     return env, recorder
 
 
 def _reset(heights, init_force, params):
-    # The module's own jitted reset/step, called as `ll.free_flight_replay` calls them, so the tests and the
+    # The module's own jitted reset/step, called as `reference.free_flight_replay` calls them, so the tests and the
     # replay share one compiled program each (each compile of the solver takes ~10 s of CPU).
-    return ll._jit_reset(heights, init_force, params, velocity_iterations=ll.VELOCITY_ITERATIONS)
+    return reference.replay_reset(heights, init_force, params, velocity_iterations=ll.VELOCITY_ITERATIONS)
 
 
 def _step(state, action, dispersion, params):
-    return ll._jit_step(state, action, dispersion, params, False, ll.VELOCITY_ITERATIONS)
+    return reference.replay_step(state, action, dispersion, params, False, ll.VELOCITY_ITERATIONS)
 
 
 @functools.cache
@@ -75,7 +75,7 @@ def test_reset_observation_matches_gymnasium() -> None:
         obs_j, state = _jitted()["reset"](rec.draws[0], np.concatenate(rec.draws[1:3]), EnvParams())
         np.testing.assert_allclose(np.asarray(obs_j), obs_g, atol=1e-6)
         legs = np.array([[*leg.position, leg.angle] for leg in env.legs])
-        origins = np.asarray(ll._origin(state.pos, state.angle))[1:]
+        origins = np.asarray(ll.body_origins(state.pos, state.angle))[1:]
         np.testing.assert_allclose(origins, legs[:, :2], atol=1e-4)
         np.testing.assert_allclose(np.asarray(state.angle)[1:], legs[:, 2], atol=1e-4)
         assert float(state.prev_shaping) == pytest.approx(env.prev_shaping, abs=1e-4)
@@ -146,7 +146,7 @@ def test_free_flight_replay_matches_gymnasium() -> None:
     _gymnasium()
     n_steps = 0
     for seed in range(20):
-        out = ll.free_flight_replay(seed)
+        out = reference.free_flight_replay(seed)
         assert out["obs_diff"].max() <= 1e-3, seed
         assert out["reward_diff"].max(initial=0.0) <= 1e-2, seed
         n_steps += len(out["reward_diff"])
@@ -224,6 +224,39 @@ def test_vmap_256_envs_300_steps_finite() -> None:
     assert obs.shape == (n, 8) and obs.dtype == jnp.float32
     assert bool(finite)
     assert int(done.sum()) > n  # random play ends episodes (mostly crashes); auto-reset continues
+
+
+
+def test_auto_reset_matches_gymnax_select_both() -> None:
+    """`LunarLander.step` resets a vmapped batch only on steps where some env is done; gymnax computes a reset
+    every step and selects. Same keys, same results (to XLA's rounding: the two are different programs).
+    Episodes are cut at 15 steps so that every reset happens in free flight (no chaotic contacts)."""
+    from gymnax.environments import environment
+
+    env = LunarLander(velocity_iterations=4)  # a short solver compiles fast; the auto-reset logic is the same
+    params = env.default_params.replace(max_steps_in_episode=15)
+    n = 8
+
+    def run(step):
+        @jax.jit
+        def rollout(key):
+            _, state = jax.vmap(env.reset, (0, None))(jax.random.split(key, n), params)
+
+            def body(state, key):
+                keys = jax.random.split(key, n)
+                action = jax.random.randint(key, (n,), 0, 4)
+                obs, state, reward, term, trunc, _ = jax.vmap(step, (0, 0, 0, None))(keys, state, action, params)
+                return state, (obs, reward, term | trunc)
+
+            return jax.lax.scan(body, state, jax.random.split(key, 40))[1]
+
+        return jax.device_get(rollout(jax.random.PRNGKey(4)))
+
+    obs, reward, done = run(env.step)
+    ref_obs, ref_reward, ref_done = run(lambda *a: environment.Environment.step.__wrapped__(env, *a))
+    assert done.sum() >= 2 * n and (done == ref_done).all()
+    np.testing.assert_allclose(obs, ref_obs, atol=1e-5)
+    np.testing.assert_allclose(reward, ref_reward, atol=1e-3)
 
 
 # --- parameter validation -------------------------------------------------------------------------

@@ -1,0 +1,251 @@
+"""``b2World::Step`` for the lander's island: collide, warm start, velocity and position iterations, sleep."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from amjax.envs.lunar_lander.collide import candidate_edges, collide_all
+from amjax.envs.lunar_lander.constants import (
+    ANGULAR_SLEEP_TOL,
+    CONTACT_BODY_ORDER,
+    DT,
+    ILLEGAL_KEY,
+    INV_I,
+    INV_MASS,
+    JOINT_ORDER,
+    LIMIT_INACTIVE,
+    LINEAR_SLEEP_TOL,
+    LINEAR_SLOP,
+    MAX_ROTATION,
+    MAX_TRANSLATION,
+    POSITION_ITERATIONS,
+    TIME_TO_SLEEP,
+    VELOCITY_ITERATIONS,
+)
+from amjax.envs.lunar_lander.contacts import contact_constraint, contact_position, contact_velocity
+from amjax.envs.lunar_lander.joints import joint_constraint, joint_position, joint_velocity
+from amjax.envs.lunar_lander.state import EnvState
+
+
+def _materialized(it: jax.Array, fn: Callable, *operands: Any) -> Any:
+    """``fn(*operands)`` with its outputs computed once, not re-derived inside each consumer kernel.
+
+    XLA's CPU fusion duplicates elementwise producers into their consumers. Compiled plainly, one velocity
+    iteration became 46 kernels that each recomputed most of the Gauss-Seidel chain before it (5,474 fused
+    operations per env). A conditional is a fusion boundary, so each solve runs behind ``lax.cond(it >= 0, ...)``
+    on the (unbatched) loop counter, a branch that is always taken and stays a branch under vmap: the same
+    arithmetic, 2.5x faster at 1,024 envs.
+    """
+
+    def never(*ops):
+        # Zeros shaped like fn's outputs, computed from the operands so that under shard_map they vary over
+        # the same manual axes as fn's outputs (the branches' types must agree).
+        zero = sum(0 * leaf.astype(jnp.float32) for leaf in jax.tree.leaves(ops))
+        return jax.tree.map(lambda s: jnp.broadcast_to(zero, s.shape).astype(s.dtype), jax.eval_shape(fn, *ops))
+
+    return jax.lax.cond(it >= 0, fn, never, *operands)
+
+
+def vary_together(tree: Any) -> Any:
+    """``tree`` with every leaf varying over ``shard_map``'s manual axes as much as any leaf does (adds zeros).
+
+    A loop carry or branch output that starts from constants (a fresh reset's zero impulses) but meets varying
+    values fails ``jax.shard_map``'s default ``check_vma=True``; outside ``shard_map`` XLA folds the zeros away.
+    """
+    zero = sum(jnp.sum(0 * jnp.asarray(leaf, jnp.float32)) for leaf in jax.tree.leaves(tree))
+
+    def vary(x):
+        x = jnp.asarray(x)
+        return x | (zero != 0) if x.dtype == jnp.bool_ else x + zero.astype(x.dtype)
+
+    return jax.tree.map(vary, tree)
+
+def world_step(
+    state: EnvState,
+    force: jax.Array,
+    torque: jax.Array,
+    gravity: jax.Array,
+    contacts: bool = True,
+    velocity_iterations: int = VELOCITY_ITERATIONS,
+):
+    """One b2World::Step(1/50, 180, 60): collide, solve the island, sleep bookkeeping.
+
+    ``contacts=False`` (static) skips collision entirely; used for the reset step, which
+    Gymnasium runs 13 m above the highest possible terrain.
+    """
+    # -- b2ContactManager::Collide at the start of the step (positions of the last step).
+    if contacts:
+        edges = candidate_edges(state.pos)
+        count, face_a, lnormal, lpoint, lpts, keys = collide_all(
+            state.pos, state.angle, state.terrain_y, edges
+        )
+        touching = count > 0
+        # Old data of the same (body, edge) pair, then warm-start impulses matched by contact id.
+        same = (edges[:, :, None] == state.contact_edge[:, None, :]) & (edges[:, :, None] >= 0)
+        old_keys = jnp.where(same[..., None], state.contact_key[:, None], ILLEGAL_KEY)
+        old_ni = jnp.sum(jnp.where(same[..., None], state.normal_impulse[:, None], 0.0), axis=2)
+        old_ti = jnp.sum(jnp.where(same[..., None], state.tangent_impulse[:, None], 0.0), axis=2)
+        old_keys = jnp.max(old_keys, axis=2)
+        match = (keys[..., :, None] == old_keys[..., None, :]) & (keys[..., :, None] != ILLEGAL_KEY)
+        first_match = match & (jnp.cumsum(match, axis=-1) == 1)
+        ni0 = jnp.sum(jnp.where(first_match, old_ni[..., None, :], 0.0), axis=-1)
+        ti0 = jnp.sum(jnp.where(first_match, old_ti[..., None, :], 0.0), axis=-1)
+        valid = jnp.arange(2) < count[..., None]
+        ni0, ti0 = jnp.where(valid, ni0, 0.0), jnp.where(valid, ti0, 0.0)
+        # Begin/End contact events per (body, edge) pair.
+        was = jnp.any(same & state.touching[:, None, :], axis=2)
+        still = jnp.any(
+            (state.contact_edge[:, :, None] == edges[:, None, :]) & touching[:, None, :], axis=2
+        )
+        began = touching & ~was
+        ended = state.touching & ~still
+        game_over = state.game_over | began[0].any()
+        leg_begin, leg_end = began[1:].any(axis=1), ended[1:].any(axis=1)
+        leg_contact = (state.leg_contact | leg_begin) & ~leg_end
+    else:
+        edges, touching, keys = state.contact_edge, state.touching, state.contact_key
+        ni0, ti0 = state.normal_impulse, state.tangent_impulse
+        game_over, leg_contact = state.game_over, state.leg_contact
+
+    # -- Integrate velocities (b2Island::Solve).
+    h = DT
+    vel = state.vel + h * (jnp.stack([0.0, gravity]) + INV_MASS[:, None] * force)
+    omega = state.omega + h * INV_I * torque
+    c = [(state.pos[b, 0], state.pos[b, 1]) for b in range(3)]
+    a = [state.angle[b] for b in range(3)]
+    bv = [(vel[b, 0], vel[b, 1], omega[b]) for b in range(3)]
+
+    # -- Contact constraints of the legs' two candidate edges, warm started.
+    cons, cimp = [], []
+    for b in CONTACT_BODY_ORDER if contacts else ():
+        for e_idx in range(2):
+            con = contact_constraint(
+                b, count[b, e_idx], face_a[b, e_idx], lnormal[b, e_idx], lpoint[b, e_idx],
+                lpts[b, e_idx], c[b], a[b],
+            )
+            cons.append((con, e_idx, True))
+            n1, n2, t1, t2 = ni0[b, e_idx, 0], ni0[b, e_idx, 1], ti0[b, e_idx, 0], ti0[b, e_idx, 1]
+            cimp.append((n1, n2, t1, t2))
+            vx, vy, w = bv[b]
+            for j, (nj, tj) in enumerate(((n1, t1), (n2, t2))):
+                rx, ry = (con["r1x"], con["r1y"]) if j == 0 else (con["r2x"], con["r2y"])
+                act = con["vcount"] > j
+                pxx = jnp.where(act, nj * con["nx"] + tj * con["ny"], 0.0)
+                pyy = jnp.where(act, nj * con["ny"] - tj * con["nx"], 0.0)
+                vx, vy = vx + INV_MASS[b] * pxx, vy + INV_MASS[b] * pyy
+                w = w + INV_I[b] * (rx * pyy - ry * pxx)
+            bv[b] = (vx, vy, w)
+
+    # -- Joint constraints, warm started (dtRatio = 1; everything is zero on the first step).
+    joints, jimp, jmot = [], [], []
+    for k in range(2):
+        j = joint_constraint(a[0], a[k + 1], k, state.limit_state[k])
+        joints.append(j)
+        ix, iy = state.joint_impulse[k, 0], state.joint_impulse[k, 1]
+        iz = jnp.where(j["changed"] | (j["state"] == LIMIT_INACTIVE), 0.0, state.joint_impulse[k, 2])
+        mot = state.motor_impulse[k]
+        jimp.append((ix, iy, iz))
+        jmot.append(mot)
+        (vax, vay, wa), (vbx, vby, wb) = bv[0], bv[k + 1]
+        bv[0] = (vax - INV_MASS[0] * ix, vay - INV_MASS[0] * iy,
+                 wa - INV_I[0] * (j["rax"] * iy - j["ray"] * ix + mot + iz))
+        bv[k + 1] = (vbx + INV_MASS[k + 1] * ix, vby + INV_MASS[k + 1] * iy,
+                     wb + INV_I[k + 1] * (j["rbx"] * iy - j["rby"] * ix + mot + iz))
+
+    # -- Velocity iterations: joints then contacts (b2Island::Solve order).
+    def vel_iter(it, carry):
+        bv, jimp, jmot, cimp = (list(x) for x in carry)
+        for k in JOINT_ORDER:
+            bv[0], bv[k + 1], jimp[k], jmot[k] = _materialized(
+                it, lambda *ops, k=k: joint_velocity(*ops[:3], k, *ops[3:]),
+                bv[0], bv[k + 1], joints[k], jimp[k], jmot[k],
+            )
+        for idx, (con, _, _) in enumerate(cons):
+            b = con["b"]
+            arrays = {name: value for name, value in con.items() if name != "b"}
+            bv[b], *new = _materialized(
+                it, lambda v, arrays, *imp, b=b: contact_velocity(v, {**arrays, "b": b}, *imp),
+                bv[b], arrays, *cimp[idx],
+            )
+            cimp[idx] = tuple(new)
+        return tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp)
+
+    bv, jimp, jmot, cimp = jax.lax.fori_loop(
+        0, velocity_iterations, vel_iter, vary_together((tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp)))
+    )
+
+    # -- Store impulses per (body, edge); points beyond the solved count keep their values.
+    normal_imp, tangent_imp = ni0, ti0
+    for (con, e_idx, _), (n1, n2, t1, t2) in zip(cons, cimp, strict=True):
+        b = con["b"]
+        two = con["vcount"] == 2
+        new_n = jnp.stack([n1, jnp.where(two, n2, normal_imp[b, e_idx, 1])])
+        new_t = jnp.stack([t1, jnp.where(two, t2, tangent_imp[b, e_idx, 1])])
+        normal_imp = normal_imp.at[b, e_idx].set(new_n)
+        tangent_imp = tangent_imp.at[b, e_idx].set(new_t)
+
+    # -- Integrate positions with the translation/rotation clamps.
+    vel = jnp.stack([jnp.stack(v[:2]) for v in bv])
+    omega = jnp.stack([v[2] for v in bv])
+    trans2 = jnp.sum((h * vel) ** 2, axis=1)
+    vel = vel * jnp.where(trans2 > MAX_TRANSLATION**2, MAX_TRANSLATION / jnp.sqrt(trans2), 1.0)[:, None]
+    rot = h * omega
+    omega = omega * jnp.where(rot * rot > MAX_ROTATION**2, MAX_ROTATION / jnp.abs(rot), 1.0)
+    c = [(c[b][0] + h * vel[b, 0], c[b][1] + h * vel[b, 1]) for b in range(3)]
+    a = [a[b] + h * omega[b] for b in range(3)]
+
+    # -- Position iterations, stopping like Box2D once contacts and joints are within slop.
+    def pos_cond(carry):
+        i, _, _, done = carry
+        return (i < POSITION_ITERATIONS) & ~done
+
+    def pos_iter(carry):
+        i, cs, as_, _ = carry
+        cs, as_ = list(cs), list(as_)
+        min_sep = jnp.float32(0.0)
+        for con, _, _ in cons:
+            b = con["b"]
+            for j in range(2):
+                cx, cy, as_[b], sep = contact_position(cs[b][0], cs[b][1], as_[b], con, j)
+                cs[b] = (cx, cy)
+                min_sep = jnp.minimum(min_sep, sep)
+        ok = min_sep >= -3.0 * LINEAR_SLOP
+        for k in JOINT_ORDER:
+            cs[0], as_[0], cs[k + 1], as_[k + 1], jok = joint_position(
+                cs[0], as_[0], cs[k + 1], as_[k + 1], joints[k]["state"], k
+            )
+            ok = ok & jok
+        return i + 1, tuple(cs), tuple(as_), ok
+
+    _, cs, as_, solved = jax.lax.while_loop(
+        pos_cond, pos_iter, (jnp.int32(0), *vary_together((tuple(c), tuple(a), jnp.bool_(False))))
+    )
+
+    # -- Sleep (b2Island::Solve with allowSleep).
+    resting = (omega * omega <= ANGULAR_SLEEP_TOL**2) & (
+        jnp.sum(vel * vel, axis=1) <= LINEAR_SLEEP_TOL**2
+    )
+    sleep_time = jnp.where(resting, state.sleep_time + h, 0.0)
+    asleep = (jnp.min(sleep_time) >= TIME_TO_SLEEP) & solved
+    return state.replace(
+        pos=jnp.stack([jnp.stack(p) for p in cs]),
+        angle=jnp.stack(as_),
+        vel=vel,
+        omega=omega,
+        joint_impulse=jnp.stack([jnp.stack(x) for x in jimp]),
+        motor_impulse=jnp.stack(jmot),
+        limit_state=jnp.stack([j["state"] for j in joints]).astype(jnp.int32),
+        sleep_time=sleep_time,
+        contact_edge=edges,
+        touching=touching,
+        contact_key=keys,
+        normal_impulse=normal_imp,
+        tangent_impulse=tangent_imp,
+        leg_contact=leg_contact,
+        game_over=game_over,
+        awake=~asleep,
+    )

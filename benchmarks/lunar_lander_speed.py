@@ -1,0 +1,170 @@
+"""LunarLander-v3 speed: the pure-JAX port against Gymnasium's Box2D original, timed in one invocation.
+
+    python benchmarks/lunar_lander_speed.py                       # 1, 64, 1,024, 4,096, 16,384 envs
+    python benchmarks/lunar_lander_speed.py --envs 1 1024 --steps-per-run 50000
+
+Random actions, auto-reset included in both. Gymnasium: one env in a Python loop (its C++ Box2D on one core,
+episodes cut at 1000 steps as LunarLander-v3's TimeLimit does). The port: `env.step` vmapped over the envs inside
+a jitted `lax.scan`, the envs split over the CPU devices with `jax.shard_map` (one device per core, as
+`amjax.cores` sets up and the sweep runner uses; default `check_vma`). Also the single-env jitted `env.step`
+called from Python (the path of notebooks and the Gymnasium bridge). Prints a markdown table (env-steps/s,
+compile time, memory) and writes it to benchmarks/results/lunar_lander_speed_<date>.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import resource
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
+
+import amjax  # noqa: F401  (one CPU device per core)
+from amjax.envs.lunar_lander import LunarLander
+from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander
+
+RESULTS = Path(__file__).parent / "results"
+
+
+def gymnasium_rate(n_steps: int, seed: int = 0) -> float:
+    """Env-steps/s of Gymnasium's LunarLander-v3, random actions, reset on termination or 1000 steps."""
+    env = load_gymnasium_lunar_lander().LunarLander()
+    env.action_space.seed(seed)
+    env.reset(seed=seed)
+    t, start = 0, time.perf_counter()
+    for _ in range(n_steps):
+        _, _, terminated, _, _ = env.step(env.action_space.sample())
+        t += 1
+        if terminated or t == 1000:
+            env.reset()
+            t = 0
+    return n_steps / (time.perf_counter() - start)
+
+
+def port_rollout(env: LunarLander, n_steps: int):
+    """(state, keys) -> state: `n_steps` vmapped random-action steps of every env in `state`."""
+    params = env.default_params
+
+    def rollout(state, key):
+        def body(state, key):
+            actions = jax.vmap(lambda k: env.action_space(params).sample(k))(
+                jax.vmap(jax.random.fold_in, (0, None))(key, 1)
+            )
+            _, state, _, _, _, _ = jax.vmap(env.step, (0, 0, 0, None))(key, state, actions, params)
+            return state, None
+
+        keys = jax.vmap(lambda k: jax.random.split(k, n_steps), out_axes=1)(key)
+        return jax.lax.scan(body, state, keys)[0]
+
+    return rollout
+
+
+def port_rate(env: LunarLander, n_envs: int, n_steps: int, devices: list) -> dict[str, float]:
+    """Env-steps/s, compile seconds and program memory of `n_envs` envs split over `devices`."""
+    params = env.default_params
+    keys = jax.random.split(jax.random.key(0), n_envs)
+    _, state = jax.jit(jax.vmap(env.reset, (0, None)))(keys, params)
+    rollout = port_rollout(env, n_steps)
+    if len(devices) > 1 and n_envs % len(devices) == 0:
+        mesh = Mesh(np.array(devices), ("envs",))
+        spec = PartitionSpec("envs")
+        rollout = jax.shard_map(rollout, mesh=mesh, in_specs=spec, out_specs=spec)
+        used = len(devices)
+    else:
+        used = 1
+    step_keys = jax.random.split(jax.random.key(1), n_envs)
+    start = time.perf_counter()
+    compiled = jax.jit(rollout).lower(state, step_keys).compile()
+    compile_s = time.perf_counter() - start
+    memory = compiled.memory_analysis()
+    program_bytes = sum(
+        getattr(memory, name, 0) or 0
+        for name in ("temp_size_in_bytes", "argument_size_in_bytes", "output_size_in_bytes")
+    )
+    jax.block_until_ready(compiled(state, step_keys))  # warm-up
+    start = time.perf_counter()
+    jax.block_until_ready(compiled(state, step_keys))
+    seconds = time.perf_counter() - start
+    return {
+        "envs": n_envs,
+        "devices": used,
+        "rate": n_envs * n_steps / seconds,
+        "compile_s": compile_s,
+        "program_mib": program_bytes / 2**20,
+        "rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def single_env_rate(env: LunarLander, n_steps: int) -> float:
+    """Steps/s of one env's jitted `env.step` called from Python (random actions, auto-reset)."""
+    params = env.default_params
+    step = jax.jit(env.step)
+    key = jax.random.key(0)
+    _, state = jax.jit(env.reset)(key, params)
+    jax.block_until_ready(step(key, state, 0, params))
+    actions = np.random.default_rng(0).integers(0, 4, n_steps)
+    keys = jax.random.split(key, n_steps)
+    start = time.perf_counter()
+    for i in range(n_steps):
+        _, state, _, _, _, _ = step(keys[i], state, int(actions[i]), params)
+    jax.block_until_ready(state)
+    return n_steps / (time.perf_counter() - start)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--envs", type=int, nargs="+", default=[1, 64, 1024, 4096, 16384])
+    parser.add_argument("--steps-per-run", type=int, default=200_000, help="env-steps per timed port run")
+    parser.add_argument("--gymnasium-steps", type=int, default=20_000)
+    parser.add_argument("--single-env-steps", type=int, default=2_000)
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args()
+
+    env = LunarLander()
+    devices = jax.devices()
+    gym = gymnasium_rate(args.gymnasium_steps)
+    single = single_env_rate(env, args.single_env_steps)
+    rows = []
+    for n in args.envs:
+        n_steps = int(np.clip(args.steps_per_run // n, 20, 2000))
+        row = port_rate(env, n, n_steps, devices)
+        rows.append(row)
+        print(f"{n} envs: {row['rate']:,.0f} env-steps/s, compile {row['compile_s']:.1f} s", flush=True)
+
+    load = os.getloadavg()
+    lines = [
+        f"# LunarLander-v3 speed, {datetime.date.today()}",
+        "",
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, {len(devices)} JAX CPU devices, "
+        f"jax {jax.__version__}; load average at the end {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} "
+        "(other jobs on the machine slow both systems).",
+        "",
+        "| system | envs | devices | env-steps/s | vs Gymnasium | compile (s) | program memory (MiB) "
+        "| peak RSS (MiB) |",
+        "|---|---|---|---|---|---|---|---|",
+        f"| Gymnasium LunarLander-v3 (C++ Box2D), Python loop | 1 | 1 core | {gym:,.0f} | 1.0x | - | - | - |",
+        f"| amjax port, jitted `env.step` called from Python | 1 | 1 | {single:,.0f} | {single / gym:.2f}x "
+        "| - | - | - |",
+    ]
+    for r in rows:
+        lines.append(
+            f"| amjax port, vmapped `env.step` in `lax.scan` | {r['envs']:,} | {r['devices']} "
+            f"| {r['rate']:,.0f} | "
+            f"{r['rate'] / gym:.1f}x | {r['compile_s']:.1f} | {r['program_mib']:.1f} | {r['rss_mib']:,.0f} |"
+        )
+    table = "\n".join(lines) + "\n"
+    print(table)
+    out = args.out or RESULTS / f"lunar_lander_speed_{datetime.date.today()}.md"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(table)
+    print(f"written to {out}")
+
+
+if __name__ == "__main__":
+    main()
