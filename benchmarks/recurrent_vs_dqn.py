@@ -73,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", required=True, help="output folder (resumes a sweep already there)")
     parser.add_argument("--costs", type=float, nargs="+", default=[0.1, 0.2, 0.3])
     parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--first-seed", type=int, default=0, help="seeds first-seed, first-seed + 1, ...")
+    parser.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
     parser.add_argument("--steps", type=int, default=153_600, help="env steps per configuration")
     parser.add_argument("--eval-every", type=int, default=10_240)
     parser.add_argument("--eval-episodes", type=int, default=10)
@@ -85,9 +87,9 @@ def main(argv: list[str] | None = None) -> int:
 
     spec = SweepSpec(
         envs=("CartPole-v0",),
-        agents=AGENTS,
+        agents=tuple(args.agents),
         costs=tuple(args.costs),
-        seeds=tuple(range(args.seeds)),
+        seeds=tuple(range(args.first_seed, args.first_seed + args.seeds)),
         total_timesteps=args.steps,
         eval_every=args.eval_every,
         eval_episodes=args.eval_episodes,

@@ -21,18 +21,9 @@ pre-reset next observation from the carry after step t (no reset), so truncated 
 the values never mix episodes. n-step returns (`dqn.n_step_transitions`) stop at an episode's end and at the
 sequence's end, and use double-Q targets (`dqn.td_targets`) from a target network.
 
-Defaults, tuned on the active-measure CartPole-v0 (mode "last") at cost 0.3, 3 seeds, median over seeds of the best
-test costed reward (10 episodes per evaluation, every 10,240 steps) and the measured fraction there; memoryless
-Dueling DQN finds "measure every other step" (170 at cost 0.3, 50% measured):
-- n_step=3, learning rate 5e-4 (the first defaults): 10,240 steps, 2 seeds: 17.9, a failing policy.
-- n_step=10 (as DQN; stale observations make short bootstrapping bad), 153,600 steps: learning rate 5e-4 -> 173.5
-  (44% measured); 1e-3 -> 180.9 (32%). Both pass through "every other step" (170) by about 30k steps.
-- n_step=10, 122,880 steps: learning rate 1e-3 -> 180.0 (33%), 2e-3 -> 185.3 (25%); with gradient_steps=2 in place
-  of 4 (half the learner's compute) 170.0 (50%) and 177.6 (37%): the replay ratio matters, the skipping policy
-  comes from more gradient steps per env step, not from more env steps.
-So n_step=10, learning_rate=2e-3, gradient_steps=4. The learner dominates the cost: with these defaults 6 vmapped
-configurations ran at 1.1k-1.6k env steps/s and 30 at about 1.7k on one loaded CPU core (DQN: about 30k for 30).
-The 10-seed comparison with DQN (153,600 steps) is in docs/recurrent.md.
+The learner is the cost (a GRU unroll of burn_in + seq_len steps for the online and the target network per sampled
+sequence), so the defaults sample one sequence per env step (4 x 32 per 16 envs x 8 steps) rather than four. The
+tuning runs behind the defaults and the speed measurements are in docs/recurrent.md.
 """
 
 from __future__ import annotations
@@ -47,7 +38,7 @@ from flax import struct
 
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.dqn import DQNConfig, epsilon, make_optimizer, n_step_transitions, td_targets, transition_arrays
-from amjax.agents.networks import CELLS, RecurrentQNetwork, unroll, zero_carry
+from amjax.agents.networks import CELLS, RecurrentQNetwork, zero_carry
 from amjax.agents.replay import ReplayBuffer, sequence_add, sequence_init, sequence_sample, sequence_windows
 from amjax.agents.rollout import EnvBatch, reset_envs, rollout
 from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, make_train
@@ -56,14 +47,14 @@ from amjax.validation import check_choice, check_positive_int
 
 @struct.dataclass
 class DRQNConfig(AgentConfig):
-    num_envs: int = static(4)
-    buffer_size: int = static(2_000)  # sequences (each burn_in + seq_len steps)
+    num_envs: int = static(16)
+    buffer_size: int = static(2_000)  # sequences (each burn_in + seq_len steps): the last 16k env steps
     batch_size: int = static(32)  # sequences per gradient step
     seq_len: int = static(16)  # trained steps per sequence
     burn_in: int = static(8)  # steps unrolled from the stored hidden state before the trained ones
     learning_starts: int = static(1_000)  # env steps taken before the first gradient step
     train_freq: int = static(8)  # steps per env between gradient phases (= the stride between stored sequences)
-    gradient_steps: int = static(4)  # 4 x 512 sampled steps per 32 env steps (2 stays at 50% measured)
+    gradient_steps: int = static(4)  # 4 x 32 sampled sequences per 128 env steps (docs/recurrent.md)
     target_update_interval: int = static(2_000)  # env steps between target updates (250 gradient steps)
     hidden: Sequence[int] = static((64,))  # MLP under the recurrent cell
     rnn_size: int = static(64)
@@ -187,17 +178,25 @@ def q_values(config: DRQNConfig, params: Any, steps: dict[str, jax.Array], start
 
     The first `burn_in` steps only warm the hidden state up (no gradient). For the trained steps returns the
     Q-values [seq_len, batch, A] and the bootstrap Q-values of each step's pre-reset next observation."""
+    return _trained_q_values(config, params, steps, _burn_in(config, params, steps, start))
+
+
+def _burn_in(config: DRQNConfig, params: Any, steps: dict[str, jax.Array], start: Any) -> Any:
+    """The hidden state after the burn-in steps (no gradient); `start` if there are none."""
+    if not config.burn_in:
+        return start
+    carries, _ = network(config).apply(
+        params, start, steps["obs"][: config.burn_in], steps["first"][: config.burn_in], method="unroll"
+    )
+    return jax.lax.stop_gradient(jax.tree.map(lambda c: c[-1], carries))
+
+
+def _trained_q_values(
+    config: DRQNConfig, params: Any, steps: dict[str, jax.Array], carry: Any
+) -> tuple[jax.Array, jax.Array]:
     net = network(config)
-
-    def step(carry, obs, first):
-        return net.apply(params, carry, obs, first)
-
-    carry = start
-    if config.burn_in:
-        carries, _ = unroll(step, start, steps["obs"][: config.burn_in], steps["first"][: config.burn_in])
-        carry = jax.lax.stop_gradient(jax.tree.map(lambda c: c[-1], carries))
     trained = jax.tree.map(lambda x: x[config.burn_in :], steps)
-    carries, q = unroll(step, carry, trained["obs"], trained["first"])
+    carries, q = net.apply(params, carry, trained["obs"], trained["first"], method="unroll")
     _, q_next = net.apply(params, carries, trained["next_obs"], jnp.zeros_like(trained["first"]))
     return q, q_next
 
@@ -210,30 +209,39 @@ def sequence_targets(
     A return stops at the first episode end (`done`; bootstrapping only if it was a truncation) and at the
     sequence's last step, so it never reaches into another episode or past the stored data."""
     trained = jax.tree.map(lambda x: x[config.burn_in :], steps)
-    num_actions = q_next_online.shape[-1]
+    # Each step's bootstrap value (one number) rides through the n-step sums in place of its next observation.
+    bootstrap = td_targets(q_next_online, q_next_target, 0.0, 1.0, config.double_q)
     window = {
         "obs": trained["reward"],  # unused
         "action": trained["action"],
         "reward": trained["reward"],
-        "next_obs": jnp.concatenate([q_next_online, q_next_target], -1),  # the bootstrap values ride along
+        "next_obs": bootstrap[..., None],
         "terminated": trained["terminated"],
         "done": trained["done"].at[-1].set(1.0),  # cut at the sequence's end
     }
     padding = jax.tree.map(lambda x: jnp.zeros((config.n_step - 1, *x.shape[1:]), x.dtype), window)
     window = jax.tree.map(lambda x, p: jnp.concatenate([x, p]), window, padding)
     items = n_step_transitions(window, config.n_step, config.gamma)
-    q_online, q_target = items["next_obs"][..., :num_actions], items["next_obs"][..., num_actions:]
-    return td_targets(q_online, q_target, items["reward"], items["discount"], config.double_q)
+    return items["reward"] + items["discount"] * items["next_obs"][..., 0]
 
 
 def loss(config: DRQNConfig, params: Any, target_params: Any, steps: dict[str, jax.Array], start: Any) -> jax.Array:
-    """Mean Huber TD error over the trained steps of a batch of sequences."""
-    q, q_next_online = q_values(config, params, steps, start)
-    _, q_next_target = q_values(config, target_params, steps, start)
+    """Mean Huber TD error over the trained steps of a batch of sequences.
+
+    The online and target networks' burn-ins (neither takes a gradient) run as one vmapped unroll over the two
+    parameter sets."""
+    both = jax.tree.map(lambda p, t: jnp.stack([jax.lax.stop_gradient(p), t]), params, target_params)
+    online_carry, target_carry = _unstack(jax.vmap(_burn_in, (None, 0, None, None))(config, both, steps, start))
+    q, q_next_online = _trained_q_values(config, params, steps, online_carry)
+    _, q_next_target = _trained_q_values(config, target_params, steps, target_carry)
     targets = sequence_targets(config, steps, q_next_online, q_next_target)
     action = steps["action"][config.burn_in :]
     q_taken = jnp.take_along_axis(q, action[..., None], -1)[..., 0]
     return optax.huber_loss(q_taken, jax.lax.stop_gradient(targets)).mean()
+
+
+def _unstack(tree: Any) -> tuple[Any, Any]:
+    return jax.tree.map(lambda x: x[0], tree), jax.tree.map(lambda x: x[1], tree)
 
 
 def update(config: DRQNConfig, state: DRQNState) -> tuple[DRQNState, UpdateStats]:

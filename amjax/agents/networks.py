@@ -7,7 +7,7 @@ normal with the orthogonal initialiser's variance (gain^2 / fan_in) behaves the 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import flax.linen as nn
@@ -116,8 +116,11 @@ def dueling_head(x: jax.Array, num_actions: int, dueling: bool, head: type[nn.Mo
 #
 # A recurrent network is called one step at a time: `apply(params, carry, obs, first) -> (carry, outputs)`, with the
 # carry reset to zeros where `first` (an episode's first step) before the step. `obs`/`first` may have any leading
-# batch axes ([envs] when acting, [time, envs] when bootstrapping every step of a sequence at once); `unroll`
-# scans the step over a time-major sequence. Carries are pytrees of arrays (checkpointable).
+# batch axes ([envs] when acting, [time, envs] when bootstrapping every step of a sequence at once). A learner
+# re-runs stored time-major sequences [T, batch, ...] with `apply(..., method="unroll")`: the torso and the cell's
+# input projection run once for the whole sequence, outside the scan, which keeps only the recurrent matmul and the
+# gates (one [batch, size] x [size, gates * size] product per step). Carries are pytrees of arrays
+# (checkpointable).
 
 CELLS = ("gru", "lstm")
 
@@ -133,31 +136,87 @@ def reset_carry(carry: Any, first: jax.Array) -> Any:
     return jax.tree.map(lambda c: jnp.where(first[..., None], jnp.zeros_like(c), c), carry)
 
 
+def cell_step(cell: str, recurrent_kernel: jax.Array, carry: Any, inputs: jax.Array) -> tuple[Any, jax.Array]:
+    """One GRU / LSTM step from the input projection `inputs` (x W_i + b, gates * size wide) -> (carry, output).
+
+    GRU (the cuDNN form, no recurrent bias): r, z = sigmoid(x W_ir + h W_hr), sigmoid(x W_iz + h W_hz);
+    n = tanh(x W_in + r * (h W_hn)); h' = (1 - z) n + z h. LSTM: i, f, g, o from x W_i + h W_h; c' = f c + i g;
+    h' = o tanh(c'), carry (c, h)."""
+    if cell == "lstm":
+        c, h = carry
+        i, f, g, o = jnp.split(inputs + h @ recurrent_kernel, 4, -1)
+        c = nn.sigmoid(f) * c + nn.sigmoid(i) * jnp.tanh(g)
+        h = nn.sigmoid(o) * jnp.tanh(c)
+        return (c, h), h
+    x_r, x_z, x_n = jnp.split(inputs, 3, -1)
+    h_r, h_z, h_n = jnp.split(carry @ recurrent_kernel, 3, -1)
+    r, z = nn.sigmoid(x_r + h_r), nn.sigmoid(x_z + h_z)
+    h = (1.0 - z) * jnp.tanh(x_n + r * h_n) + z * carry
+    return h, h
+
+
 class RecurrentCore(nn.Module):
     """MLP torso -> one GRU or LSTM step; outputs [torso features, cell output] (a skip connection: the heads see
     the current observation at once, without waiting for the cell's gates to open, and the memory beside it).
-    Recurrent kernels use `scaled_init` (QR-free, see above)."""
+    The cell's input and recurrent kernels are fused across gates and use `scaled_init` (QR-free, see above)."""
 
     hidden: Sequence[int] = (64,)
     rnn_size: int = 64
     cell: str = "gru"
     activation: str = "relu"
 
-    @nn.compact
+    def setup(self) -> None:
+        gates = (4 if self.cell == "lstm" else 3) * self.rnn_size
+        self.torso = MLP(self.hidden, self.activation)
+        self.input_projection = nn.Dense(gates, kernel_init=scaled_init(1.0))
+        self.recurrent_kernel = self.param("recurrent_kernel", scaled_init(1.0), (self.rnn_size, gates))
+
     def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, jax.Array]:
-        carry = reset_carry(carry, first)
-        x = MLP(self.hidden, self.activation)(obs)
-        inits = {"kernel_init": scaled_init(1.0), "recurrent_kernel_init": scaled_init(1.0)}
-        if self.cell == "lstm":
-            cell = nn.OptimizedLSTMCell(self.rnn_size, **inits, name="lstm")
-        else:
-            cell = nn.GRUCell(self.rnn_size, **inits, name="gru")
-        carry, y = cell(carry, x)
+        x = self.torso(obs)
+        carry, y = cell_step(self.cell, self.recurrent_kernel, reset_carry(carry, first), self.input_projection(x))
         return carry, jnp.concatenate([x, y], -1)
+
+    def unroll(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, jax.Array]:
+        """A time-major sequence [T, batch, ...] -> (the carry after every step, the outputs), both [T, batch, ...];
+        the carry after step t is where the bootstrap value of step t's (pre-reset) next observation starts."""
+        x = self.torso(obs)
+        kernel = self.recurrent_kernel
+
+        def body(carry, inputs):
+            projection, first = inputs
+            carry, y = cell_step(self.cell, kernel, reset_carry(carry, first), projection)
+            return carry, (carry, y)
+
+        _, (carries, y) = jax.lax.scan(body, carry, (self.input_projection(x), first))
+        return carries, jnp.concatenate([x, y], -1)
+
+
+class DuelingHead(nn.Module):
+    """`dueling_head` as a module."""
+
+    num_actions: int
+    dueling: bool = True
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return dueling_head(x, self.num_actions, self.dueling)
+
+
+class ActorCriticHeads(nn.Module):
+    """Categorical policy logits and a state value from shared features."""
+
+    num_actions: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        logits = nn.Dense(self.num_actions, kernel_init=scaled_init(0.01), name="logits")(x)
+        value = nn.Dense(1, kernel_init=scaled_init(1.0), name="value")(x)
+        return logits, jnp.squeeze(value, -1)
 
 
 class RecurrentQNetwork(nn.Module):
-    """DRQN (Hausknecht & Stone 2015): a recurrent core under the dueling head; one step -> (carry, Q-values)."""
+    """DRQN (Hausknecht & Stone 2015): a recurrent core under the dueling head; one step -> (carry, Q-values);
+    `unroll` -> (carries, Q-values) of a sequence."""
 
     num_actions: int
     hidden: Sequence[int] = (64,)
@@ -166,15 +225,22 @@ class RecurrentQNetwork(nn.Module):
     activation: str = "relu"
     dueling: bool = True
 
-    @nn.compact
+    def setup(self) -> None:
+        self.core = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)
+        self.head = DuelingHead(self.num_actions, self.dueling)
+
     def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, jax.Array]:
-        carry, x = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)(carry, obs, first)
-        return carry, dueling_head(x, self.num_actions, self.dueling)
+        carry, x = self.core(carry, obs, first)
+        return carry, self.head(x)
+
+    def unroll(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, jax.Array]:
+        carries, x = self.core.unroll(carry, obs, first)
+        return carries, self.head(x)
 
 
 class RecurrentActorCritic(nn.Module):
     """One recurrent core shared by a categorical policy head and a value head; one step -> (carry, (logits,
-    value))."""
+    value)); `unroll` -> (carries, (logits, values)) of a sequence."""
 
     num_actions: int
     hidden: Sequence[int] = (64,)
@@ -182,24 +248,14 @@ class RecurrentActorCritic(nn.Module):
     cell: str = "gru"
     activation: str = "tanh"
 
-    @nn.compact
+    def setup(self) -> None:
+        self.core = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)
+        self.heads = ActorCriticHeads(self.num_actions)
+
     def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, tuple[jax.Array, jax.Array]]:
-        carry, x = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)(carry, obs, first)
-        logits = nn.Dense(self.num_actions, kernel_init=scaled_init(0.01), name="logits")(x)
-        value = nn.Dense(1, kernel_init=scaled_init(1.0), name="value")(x)
-        return carry, (logits, jnp.squeeze(value, -1))
+        carry, x = self.core(carry, obs, first)
+        return carry, self.heads(x)
 
-
-def unroll(
-    step: Callable[[Any, jax.Array, jax.Array], tuple[Any, Any]], carry: Any, obs: jax.Array, first: jax.Array
-) -> tuple[Any, Any]:
-    """Scan `step(carry, obs_t, first_t) -> (carry, out)` over a time-major sequence [T, batch, ...].
-
-    Returns (the carry after every step [T, batch, ...], the outputs [T, ...]); the carry after step t is where the
-    bootstrap value of step t's (pre-reset) next observation starts from."""
-
-    def body(carry, xs):
-        carry, out = step(carry, *xs)
-        return carry, (carry, out)
-
-    return jax.lax.scan(body, carry, (obs, first))[1]
+    def unroll(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, tuple[jax.Array, jax.Array]]:
+        carries, x = self.core.unroll(carry, obs, first)
+        return carries, self.heads(x)

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from amjax.agents.config import static
-from amjax.agents.networks import CELLS, RecurrentActorCritic, unroll, zero_carry
+from amjax.agents.networks import CELLS, RecurrentActorCritic, zero_carry
 from amjax.agents.optim import minibatch_step
 from amjax.agents.ppo import PPOConfig, clipped_loss, make_optimizer, rollout_advantages
 from amjax.agents.rollout import EnvBatch, reset_envs, rollout
@@ -104,8 +104,7 @@ def unroll_sequences(
     config: PPORNNConfig, params: Any, start: Any, obs: jax.Array, first: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
     """Policy logits and values [T, E, ...] of time-major sequences re-unrolled from their initial carries."""
-    net = network(config)
-    _, (logits, value) = unroll(lambda c, o, f: net.apply(params, c, o, f), start, obs, first)
+    _, (logits, value) = network(config).apply(params, start, obs, first, method="unroll")
     return logits, value
 
 

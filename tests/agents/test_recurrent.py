@@ -38,7 +38,7 @@ PROBE = {"env_id": "MemoryProbe-v0", "vanilla": True, "eval_episodes": 64}
 # Small budgets: the recurrent agents reach 1.0 at their first evaluation on 2 cores.
 PROBE_CONFIGS = {
     "drqn": DRQNConfig(
-        total_timesteps=4000, eval_every=2000, learning_starts=500, buffer_size=500, seq_len=8, burn_in=2,
+        total_timesteps=4000, eval_every=2000, learning_starts=500, num_envs=4, buffer_size=500, seq_len=8, burn_in=2,
         train_freq=5, target_update_interval=200, exploration_fraction=0.3, **PROBE,
     ),
     "ppo-rnn": PPORNNConfig(

@@ -1,0 +1,130 @@
+"""Recurrent agents' training speed at sweep scale, old settings beside new ones, in one invocation (issue 13).
+
+Each case trains `--configs` configurations of one agent (costs 0 / 0.1 / 0.2 / 0.3 / 0.4 x seeds, CartPole-v0,
+mode "last") as one vmapped, jitted program, in its own child process (so peak memory is the case's own), and
+reports the compile time, the env steps per second of the compiled run (all configurations together, evaluations
+included) and the child's peak resident memory. Cases:
+
+- `drqn-old`: DRQN with the settings it had before issue 13 (4 envs, 8 steps per env between gradient phases,
+  4 gradient steps of 32 sequences, 8 + 16 steps per sequence).
+- `drqn`: DRQN with today's defaults.
+- `ppo-rnn`: recurrent PPO with its defaults.
+
+    taskset -c 1 python benchmarks/recurrent_speed.py     # writes benchmarks/results/recurrent_speed_<date>.md
+    python benchmarks/recurrent_speed.py --configs 4 --steps 4096 --cases drqn  # a smoke run
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from typing import Any
+
+# The settings DRQN had before issue 13 (its defaults then); every other field is today's default.
+OLD_DRQN = {"num_envs": 4, "train_freq": 8, "gradient_steps": 4, "batch_size": 32, "seq_len": 16, "burn_in": 8,
+            "buffer_size": 2_000, "learning_rate": 2e-3}
+CASES: dict[str, tuple[str, dict[str, Any]]] = {
+    "drqn-old": ("drqn", OLD_DRQN),
+    "drqn": ("drqn", {}),
+    "ppo-rnn": ("ppo-rnn", {}),
+}
+COSTS = (0.0, 0.1, 0.2, 0.3, 0.4)
+
+
+def run_case(name: str, configs: int, steps: int, eval_every: int) -> dict[str, Any]:
+    """Compile and time one case in this process."""
+    import jax
+    import jax.numpy as jnp
+
+    from amjax.agents import ALGORITHMS, stack_configs
+    from amjax.agents.training import init_run, run_evals
+
+    agent, overrides = CASES[name]
+    algo = ALGORITHMS[agent]
+    items = [algo.config_type(cost=COSTS[i % len(COSTS)], **overrides) for i in range(configs)]
+    unit = items[0].steps_per_update()
+    every = max(unit, eval_every // unit * unit)
+    total = max(every, steps // every * every)
+    items = [c.replace(eval_every=every, total_timesteps=total).validate() for c in items]
+    config, num_evals = stack_configs(items), items[0].num_evals
+    keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
+
+    train = jax.jit(jax.vmap(lambda c, k: run_evals(algo, c, init_run(algo, c, k), num_evals)[1].eval_return))
+    start = time.perf_counter()
+    compiled = train.lower(config, keys).compile()
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    returns = jax.block_until_ready(compiled(config, keys))
+    run_s = time.perf_counter() - start
+    return {
+        "case": name, "agent": agent, "overrides": overrides, "configs": configs, "steps_per_config": total,
+        "compile_s": round(compile_s, 1), "run_s": round(run_s, 1),
+        "env_steps_per_s": round(configs * total / run_s), "peak_rss_mib": round(_peak_rss_mib()),
+        "final_eval_return_median": round(float(jnp.median(returns[:, -1])), 1),
+    }
+
+
+def _peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def markdown(results: list[dict[str, Any]], args: argparse.Namespace) -> str:
+    base = next((r for r in results if r["case"] == "drqn-old"), None)
+    lines = [
+        f"# Recurrent agents at sweep scale ({datetime.date.today()})", "",
+        f"{args.configs} configurations (costs {', '.join(map(str, COSTS))} x seeds) of CartPole-v0 (mode \"last\") "
+        f"in one vmapped program per case, each case in its own process, one after the other; {platform.node()}, "
+        f"{os.cpu_count()} CPUs, CPU affinity {sorted(os.sched_getaffinity(0))}, load average at the end "
+        f"{os.getloadavg()[0]:.1f}. Env steps/s: all configurations together, evaluations included, compile "
+        "excluded.", "",
+        "| case | settings | steps / config | compile (s) | run (s) | env steps/s | vs drqn-old | peak RSS (MiB) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in results:
+        ratio = f"{r['env_steps_per_s'] / base['env_steps_per_s']:.1f}x" if base else ""
+        settings = ", ".join(f"{k}={v}" for k, v in r["overrides"].items()) or "defaults"
+        lines.append(
+            f"| {r['case']} | {settings} | {r['steps_per_config']:,} | {r['compile_s']} | {r['run_s']} | "
+            f"{r['env_steps_per_s']:,} | {ratio} | {r['peak_rss_mib']:,} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    parser.add_argument("--configs", type=int, default=50)
+    parser.add_argument("--steps", type=int, default=20_480, help="env steps per configuration (rounded)")
+    parser.add_argument("--eval-every", type=int, default=10_240)
+    parser.add_argument("--out", default=f"benchmarks/results/recurrent_speed_{datetime.date.today()}.md")
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        print(json.dumps(run_case(args.child, args.configs, args.steps, args.eval_every)))
+        return 0
+
+    results = []
+    for name in args.cases:
+        command = [sys.executable, __file__, "--child", name, "--configs", str(args.configs), "--steps",
+                   str(args.steps), "--eval-every", str(args.eval_every)]
+        output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+        results.append(json.loads(output.strip().splitlines()[-1]))
+        print(json.dumps(results[-1]), flush=True)
+    text = markdown(results, args)
+    print(text)
+    if args.out:
+        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+        with open(args.out, "w") as f:
+            f.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
