@@ -162,7 +162,8 @@ def rescore(algo: Algorithm, config: AgentConfig, state: RunState) -> dict[str, 
     stream disjoint from the evaluations that picked the policy (`RESCORE_STREAM`), so their mean is not. Returns
     the mean costed return, raw return and episode length, and the measured fraction of steps."""
     env, env_params, max_steps = config.make_env()
-    policy = algo.greedy(config, state.best_params)
+    # Recurrent agents size their initial carry by eval_episodes.
+    policy = algo.greedy(config.replace(eval_episodes=config.rescore_episodes), state.best_params)
     key = jax.random.fold_in(state.key, jnp.uint32(RESCORE_STREAM))
     means = evaluate(env, env_params, max_steps, policy, key, config.rescore_episodes).means()
     return {

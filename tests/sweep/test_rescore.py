@@ -103,3 +103,14 @@ def test_seeds_beyond_32_bits_are_refused(tmp_path, capsys):
         main(["sweep", "--agent", "ppo", "--seed-list", str(2**32 + 5), "--out", str(tmp_path / "never")])
     assert exit_info.value.code == 2 and "seed: got 4294967301" in capsys.readouterr().err
     assert not (tmp_path / "never").exists()
+
+
+@pytest.mark.parametrize("agent", sorted(ALGORITHMS))
+def test_every_agent_rescores_with_more_episodes_than_it_evaluates(agent):
+    """Recurrent agents size their carry by the episode count: re-scoring (100) must not reuse eval_episodes (2)."""
+    spec = SweepSpec(agents=(agent,), costs=(0.2,), seeds=(0,), total_timesteps=8192, eval_every=8192,
+                     eval_episodes=2, hyperparams={"rescore_episodes": 5})
+    (run,) = expand(spec)
+    state = init_run(ALGORITHMS[agent], run.config, jax.random.PRNGKey(0))
+    scores = jax.jit(lambda c, s: rescore(ALGORITHMS[agent], c, s))(run.config, state)
+    assert np.isfinite(float(scores["return"])) and 0.0 <= float(scores["measured_fraction"]) <= 1.0
