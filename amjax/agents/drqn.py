@@ -47,7 +47,7 @@ from amjax.validation import check_choice, check_positive_int
 
 @struct.dataclass
 class DRQNConfig(AgentConfig):
-    num_envs: int = static(16)
+    num_envs: int = static(4)
     buffer_size: int = static(2_000)  # sequences (each burn_in + seq_len steps): the last 16k env steps
     batch_size: int = static(32)  # sequences per gradient step
     seq_len: int = static(16)  # trained steps per sequence
