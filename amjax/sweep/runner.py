@@ -236,9 +236,10 @@ def _cell(value: Any) -> Any:
     return "x".join(map(str, value)) if isinstance(value, list | tuple) else value
 
 
-def _check_folder(out: Path, spec: SweepSpec) -> bool:
+def _check_folder(out: Path, spec: SweepSpec, compare: bool = True) -> bool:
     """Whether `out` already holds this sweep (False: a new folder); SweepMismatchError if it holds anything else
-    that claims to be a sweep. Reads only."""
+    that claims to be a sweep (with `compare=False`, only if it is not a folder or its metadata is unreadable).
+    Reads only."""
     if out.exists() and not out.is_dir():
         raise SweepMismatchError(f"out: {out} is a file; give a folder")
     meta_path = out / "metadata.json"
@@ -250,7 +251,7 @@ def _check_folder(out: Path, spec: SweepSpec) -> bool:
     except (ValueError, TypeError, AttributeError) as error:
         raise SweepMismatchError(
             f"out: {meta_path} is not a sweep's metadata ({error}); choose another folder") from None
-    if stored is None or stored.to_json() != spec.to_json():  # older files: defaults filled
+    if compare and (stored is None or stored.to_json() != spec.to_json()):  # older files: defaults filled
         raise SweepMismatchError(f"out: {out} holds a different sweep (see its metadata.json); choose another folder")
     return True
 
@@ -381,7 +382,7 @@ def run_sweep(
     devices = tuple(devices or sweep_devices())
     batches = _batches(runs, max_batch, len(devices))
     _check_memory(batches, _memory_bytes())
-    _check_folder(out, spec)  # before the lock file: a foreign folder is left as it was
+    _check_folder(out, spec, compare=False)  # before the lock file: a foreign folder is left as it was
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as error:
