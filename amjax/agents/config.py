@@ -33,6 +33,13 @@ MAX_EPISODES = 65_536  # test episodes run side by side: one batch of envs per c
 MAX_WIDTH = 65_536  # a network layer's width
 
 
+def nearest_schedule(total_timesteps: int, eval_every: int, unit: int) -> tuple[int, int]:
+    """The valid (total_timesteps, eval_every) nearest the given ones: eval_every a multiple of `unit` (env steps
+    per update) no larger than the budget, total_timesteps a multiple of eval_every."""
+    every = max(unit, round(min(eval_every, total_timesteps) / unit) * unit)
+    return max(every, round(total_timesteps / every) * every), every
+
+
 def static(default: Any) -> Any:
     """A config field that sets a shape or a count: part of the compiled program, never vmapped."""
     return struct.field(pytree_node=False, default=default)
@@ -122,8 +129,7 @@ class AgentConfig:
                                  "e.g. (64, 64), or () for none")
         steps = self.steps_per_update()
         if self.eval_every % steps or self.total_timesteps % self.eval_every:
-            every = max(steps, round(self.eval_every / steps) * steps)
-            total = max(every, round(self.total_timesteps / every) * every)
+            total, every = nearest_schedule(self.total_timesteps, self.eval_every, steps)
             raise ValueError(
                 f"eval_every={self.eval_every} must be a multiple of the env steps per update ({steps}) "
                 f"and divide total_timesteps={self.total_timesteps}; nearest valid values: eval_every={every}, "

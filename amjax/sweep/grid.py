@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from amjax.agents import ALGORITHMS, AgentConfig
+from amjax.agents.config import nearest_schedule
 from amjax.envs.registry import make_env
 from amjax.validation import check_choice, check_positive_int, check_real
 
@@ -197,9 +198,7 @@ def round_schedule(spec: SweepSpec) -> tuple[SweepSpec, str | None]:
     What a command line offers for any budget; the Python API stays strict."""
     validate_spec(spec)
     unit = math.lcm(*{_steps_per_update(run.config) for run in _runs(spec)})
-    total = max(1, spec.total_timesteps)
-    every = max(unit, round(min(spec.eval_every, total) / unit) * unit)
-    total = max(every, round(total / every) * every)
+    total, every = nearest_schedule(max(1, spec.total_timesteps), spec.eval_every, unit)
     if (total, every) == (spec.total_timesteps, spec.eval_every):
         return spec, None
     note = (f"steps {spec.total_timesteps:,} and eval-every {spec.eval_every:,} rounded to {total:,} and {every:,}: "
