@@ -6,9 +6,10 @@
 Random actions, auto-reset included in both. Gymnasium: one env in a Python loop (its C++ Box2D on one core,
 episodes cut at 1000 steps as LunarLander-v3's TimeLimit does). The port: `env.step` vmapped over the envs inside
 a jitted `lax.scan`, the envs split over the CPU devices with `jax.shard_map` (one device per core, as
-`amjax.cores` sets up and the sweep runner uses; default `check_vma`). Also the single-env jitted `env.step`
-called from Python (the path of notebooks and the Gymnasium bridge). Prints a markdown table (env-steps/s,
-compile time, memory) and writes it to benchmarks/results/lunar_lander_speed_<date>.md.
+`amjax.use_all_cores()` sets up and the sweep runner uses; default `check_vma`). Also the single-env jitted `env.step`
+called from Python (the path of notebooks and the Gymnasium bridge). Both solver settings are timed by default:
+Box2D's velocity sweeps in every env (the default env) and ``exact_free_flight=True``. Prints a markdown table
+(env-steps/s, compile time, memory) and writes it to benchmarks/results/lunar_lander_speed_<date>.md.
 """
 
 from __future__ import annotations
@@ -25,9 +26,12 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-import amjax  # noqa: F401  (one CPU device per core)
-from amjax.envs.lunar_lander import LunarLander
-from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander
+import amjax
+
+amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
+
+from amjax.envs.lunar_lander import LunarLander  # noqa: E402
+from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -117,6 +121,9 @@ def single_env_rate(env: LunarLander, n_steps: int) -> float:
     return n_steps / (time.perf_counter() - start)
 
 
+SOLVERS = {"sweeps": "Box2D's sweeps", "exact_free_flight": "exact_free_flight"}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--envs", type=int, nargs="+", default=[1, 64, 1024, 4096, 16384])
@@ -124,18 +131,22 @@ def main() -> None:
     parser.add_argument("--gymnasium-steps", type=int, default=20_000)
     parser.add_argument("--single-env-steps", type=int, default=2_000)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--solvers", nargs="+", choices=SOLVERS, default=list(SOLVERS),
+                        help="the port's settings to time: Box2D's sweeps everywhere (the default env) and/or "
+                        "exact_free_flight=True")
     args = parser.parse_args()
 
-    env = LunarLander()
     devices = jax.devices()
     gym = gymnasium_rate(args.gymnasium_steps)
-    single = single_env_rate(env, args.single_env_steps)
-    rows = []
-    for n in args.envs:
-        n_steps = int(np.clip(args.steps_per_run // n, 20, 2000))
-        row = port_rate(env, n, n_steps, devices)
-        rows.append(row)
-        print(f"{n} envs: {row['rate']:,.0f} env-steps/s, compile {row['compile_s']:.1f} s", flush=True)
+    singles, rows = {}, []
+    for solver in args.solvers:
+        env = LunarLander(exact_free_flight=solver == "exact_free_flight")
+        singles[solver] = single_env_rate(env, args.single_env_steps)
+        for n in args.envs:
+            n_steps = int(np.clip(args.steps_per_run // n, 20, 2000))
+            row = {**port_rate(env, n, n_steps, devices), "solver": solver}
+            rows.append(row)
+            print(f"{solver}, {n} envs: {row['rate']:,.0f} env-steps/s, compile {row['compile_s']:.1f} s", flush=True)
 
     load = os.getloadavg()
     lines = [
@@ -149,12 +160,13 @@ def main() -> None:
         "| peak RSS (MiB) |",
         "|---|---|---|---|---|---|---|---|",
         f"| Gymnasium LunarLander-v3 (C++ Box2D), Python loop | 1 | 1 core | {gym:,.0f} | 1.0x | - | - | - |",
-        f"| amjax port, jitted `env.step` called from Python | 1 | 1 | {single:,.0f} | {single / gym:.2f}x "
-        "| - | - | - |",
     ]
+    for solver, single in singles.items():
+        lines.append(f"| port ({SOLVERS[solver]}), jitted `env.step` called from Python | 1 | 1 | {single:,.0f} "
+                     f"| {single / gym:.2f}x | - | - | - |")
     for r in rows:
         lines.append(
-            f"| amjax port, vmapped `env.step` in `lax.scan` | {r['envs']:,} | {r['devices']} "
+            f"| port ({SOLVERS[r['solver']]}), vmapped `env.step` in `lax.scan` | {r['envs']:,} | {r['devices']} "
             f"| {r['rate']:,.0f} | "
             f"{r['rate'] / gym:.1f}x | {r['compile_s']:.1f} | {r['program_mib']:.1f} | {r['rss_mib']:,.0f} |"
         )

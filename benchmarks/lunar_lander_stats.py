@@ -22,11 +22,11 @@ from amjax.envs.lunar_lander.reference import free_flight_replay, load_gymnasium
 MAX_STEPS = 1000
 
 
-def t2_replay(n_seeds: int) -> dict[str, float]:
+def t2_replay(n_seeds: int, exact_free_flight: bool = False) -> dict[str, float]:
     """Free flight on Gymnasium's recorded draws, random actions, until first ground contact."""
     obs_max, rew_max, steps = [], [], 0
     for seed in range(n_seeds):
-        out = free_flight_replay(seed)
+        out = free_flight_replay(seed, exact_free_flight=exact_free_flight)
         obs_max.append(out["obs_diff"].max())
         rew_max.append(out["reward_diff"].max(initial=0.0))
         steps += len(out["reward_diff"])
@@ -59,9 +59,9 @@ def gymnasium_heuristic(n_episodes: int) -> dict[str, np.ndarray]:
     return {"return": np.array(returns), "outcome": np.array(outcome), "length": np.array(length)}
 
 
-def jax_heuristic(n_episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
+def jax_heuristic(n_episodes: int, seed: int = 0, exact_free_flight: bool = False) -> dict[str, np.ndarray]:
     """The same controller in the port, all episodes vmapped, no auto-reset."""
-    env = LunarLander()
+    env = LunarLander(exact_free_flight=exact_free_flight)
     params = EnvParams()
     step = jax.vmap(env.step_env, in_axes=(0, 0, 0, None))
     policy = jax.vmap(heuristic_action)
@@ -106,9 +106,9 @@ def jax_heuristic(n_episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
     return {"return": np.asarray(ret), "outcome": names[np.asarray(kind)], "length": length}
 
 
-def throughput(n_envs: int = 1024, n_steps: int = 100) -> float:
+def throughput(n_envs: int = 1024, n_steps: int = 100, exact_free_flight: bool = False) -> float:
     """Steps/s of env.step (gymnax auto-reset), vmapped over n_envs, random actions."""
-    env = LunarLander()
+    env = LunarLander(exact_free_flight=exact_free_flight)
     params = env.default_params
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(
         jax.random.split(jax.random.PRNGKey(0), n_envs), params
@@ -151,11 +151,14 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=1000)
     parser.add_argument("--replay-seeds", type=int, default=200)
     parser.add_argument("--throughput-envs", type=int, default=1024)
+    parser.add_argument("--exact-free-flight", action="store_true",
+                        help="the port's LunarLander(exact_free_flight=True) instead of Box2D's sweeps everywhere")
     args = parser.parse_args()
+    exact = args.exact_free_flight
 
     if args.replay_seeds > 0:
         start = time.perf_counter()
-        t2 = t2_replay(args.replay_seeds)
+        t2 = t2_replay(args.replay_seeds, exact)
         print(f"## T2 free-flight replay ({time.perf_counter() - start:.0f} s)\n")
         print(f"{t2['seeds']} seeds, {t2['steps']} steps compared before Gymnasium's first "
               f"contact: max |obs diff| = {t2['max_obs_diff']:.2e}, "
@@ -165,7 +168,7 @@ def main() -> None:
     rows = [summary("Gymnasium (Box2D)", gymnasium_heuristic(args.episodes))]
     t_gym = time.perf_counter() - start
     start = time.perf_counter()
-    rows.append(summary("amjax (JAX)", jax_heuristic(args.episodes)))
+    rows.append(summary("amjax (JAX)", jax_heuristic(args.episodes, exact_free_flight=exact)))
     t_jax = time.perf_counter() - start
     print(f"## T3 heuristic controller (Gymnasium {t_gym:.0f} s, JAX {t_jax:.0f} s incl. compile)\n")
     print("| env | episodes | mean return (± s.e.) | landed % | crashed % | timeout % | mean length |")
@@ -183,7 +186,7 @@ def main() -> None:
           f"{diffs['landed']:+.1f} pp, crashed {diffs['crashed']:+.1f} pp, timeout "
           f"{diffs['timeout']:+.1f} pp -> {'PASS' if ok else 'FAIL'} (targets ±10, ±5 pp)\n")
 
-    sps = throughput(args.throughput_envs)
+    sps = throughput(args.throughput_envs, exact_free_flight=exact)
     print(f"## Throughput\n\nenv.step with auto-reset, vmapped over {args.throughput_envs} envs, "
           f"{jax.devices()[0].platform}: {sps:,.0f} steps/s")
 

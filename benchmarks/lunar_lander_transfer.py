@@ -22,10 +22,14 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from amjax.agents.saved import SavedPolicy, load_policy
-from amjax.analysis.maps import record_agent
-from amjax.sweep import SweepSpec, run_sweep
-from train.presets import LUNAR_LANDER_PPO
+import amjax
+
+amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
+
+from amjax.agents.saved import SavedPolicy, load_policy  # noqa: E402
+from amjax.analysis.maps import record_agent  # noqa: E402
+from amjax.sweep import SweepSpec, run_sweep  # noqa: E402
+from train.presets import LUNAR_LANDER_PPO  # noqa: E402
 
 ENV_ID = "LunarLander-v3"
 SOLVED = 200.0

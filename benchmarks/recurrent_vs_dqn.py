@@ -25,9 +25,13 @@ import time
 import jax
 import numpy as np
 
-from amjax.analysis import MeasurementMap, plot_measurement_map, record_agent
-from amjax.sweep import load_sweep_policy, run_sweep
-from amjax.sweep.grid import SweepSpec
+import amjax
+
+amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
+
+from amjax.analysis import MeasurementMap, plot_measurement_map, record_agent  # noqa: E402
+from amjax.sweep import load_sweep_policy, run_sweep  # noqa: E402
+from amjax.sweep.grid import SweepSpec  # noqa: E402
 
 AGENTS = ("dqn", "drqn")
 

@@ -36,7 +36,11 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from amjax.agents.dqn import DQNConfig
+import amjax
+
+amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
+
+from amjax.agents.dqn import DQNConfig  # noqa: E402
 
 if __package__:
     from .reference_ppo import ACTIVATIONS, make_env, qr_free_init

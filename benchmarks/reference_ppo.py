@@ -33,7 +33,10 @@ import jax.numpy as jnp
 import optax
 
 import amjax
-from amjax.agents.ppo import PPOConfig
+
+amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
+
+from amjax.agents.ppo import PPOConfig  # noqa: E402
 
 ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu, "elu": nn.elu}
 

@@ -28,22 +28,26 @@ from functools import partial
 import jax
 import numpy as np
 
-from amjax.agents import stack_configs
-from amjax.agents.training import evaluate
-from amjax.sweep.devices import config_sharding, shard_configs, sweep_devices
-from amjax.sweep.grid import expand
-from amjax.sweep.runner import _Batch, _batches, _compiled
-from train.presets import REPLICATE_AGENTS, REPLICATE_BUDGETS, replicate_specs
+import amjax
+
+amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
+
+from amjax.agents import stack_configs  # noqa: E402
+from amjax.agents.training import evaluate  # noqa: E402
+from amjax.sweep.batches import Batch, compiled_programs, plan_batches  # noqa: E402
+from amjax.sweep.devices import config_sharding, sharded_jit, sweep_devices  # noqa: E402
+from amjax.sweep.grid import expand  # noqa: E402
+from train.presets import REPLICATE_AGENTS, REPLICATE_BUDGETS, replicate_specs  # noqa: E402
 
 
-def probe_batch(batch: _Batch, budget: int, probe_steps: int, devices: list) -> dict[str, float]:
+def probe_batch(batch: Batch, budget: int, probe_steps: int, devices: list) -> dict[str, float]:
     """Compile time and steady env-steps/s of one batch, and its projected time at `budget` steps per config."""
     unit = batch.runs[0].config.steps_per_update()
     period = math.ceil(probe_steps / unit) * unit
     configs = [r.config.replace(total_timesteps=2 * period, eval_every=period).validate() for r in batch.runs]
     stacked = stack_configs(configs + [configs[-1]] * (batch.size - len(configs)))
     _, keys = batch.stacked()
-    init, chunk = _compiled(batch.algo, 1, tuple(devices))
+    init, chunk = compiled_programs(batch.algo, 1, tuple(devices))
     states = jax.device_get(init(stacked, keys))
     stacked, states = jax.device_put((stacked, states), config_sharding(devices))
     start = time.perf_counter()
@@ -58,8 +62,8 @@ def probe_batch(batch: _Batch, budget: int, probe_steps: int, devices: list) -> 
     # The evaluation alone (the same greedy test episodes the period ended with), so that training is projected at
     # its own rate and evaluation at the replicate's count of evaluations, not at the probe's much higher ratio.
     sharding = config_sharding(devices)
-    evaluation = jax.jit(shard_configs(jax.vmap(partial(_evaluation, batch.algo)), devices),
-                         in_shardings=sharding, out_shardings=sharding)
+    evaluation = sharded_jit(jax.vmap(partial(_evaluation, batch.algo)), devices,
+                             in_shardings=sharding, out_shardings=sharding)
     jax.block_until_ready(evaluation(stacked, states))
     start = time.perf_counter()
     lengths = jax.block_until_ready(evaluation(stacked, states))
@@ -85,7 +89,7 @@ def probe(env: str, agent: str, seeds: int, probe_steps: int) -> list[dict[str, 
     spec = replicate_specs((env,), (agent,), seeds)[env]
     devices = sweep_devices()
     return [probe_batch(batch, spec.total_timesteps, probe_steps, devices)
-            for batch in _batches(expand(spec), 1024, len(devices))]
+            for batch in plan_batches(expand(spec), 1024, len(devices))]
 
 
 def main() -> None:

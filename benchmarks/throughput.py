@@ -3,8 +3,9 @@
 For PPO and DQN on CartPole-v0 (the 200-step CartPole) and 1 / 16 / 256 / 1024 configurations it times:
 - `amjax`: exactly what `amjax.sweep.run_sweep` compiles for one batch: the configs stacked with
   `amjax.agents.stack_configs` (costs 0.1 / 0.2 / 0.3 cycling, seeds 0..n-1) and the runner's own two programs
-  (`init_run` under `lax.map`, then `jax.jit(jax.vmap(run_evals ...))` chunks, from `amjax.sweep.runner._compiled`),
-  with periodic greedy evaluation as in a real sweep (every steps / --evals env steps);
+  (`init_run` under `lax.map`, then `jax.jit(jax.vmap(run_evals ...))` chunks, from
+  `amjax.sweep.batches.compiled_programs`), with periodic greedy evaluation as in a real sweep (every
+  steps / --evals env steps);
 - `amjax-vanilla-env`: the same on the plain environment (`vanilla=True`: no measure action, no cost), so the
   difference is the active-measure wrapper's cost;
 - `plain reference`: benchmarks/reference_{ppo,dqn}.py, PureJaxRL-style single-file trainers with the same
@@ -146,19 +147,19 @@ def _build_amjax(case: dict[str, Any]) -> dict[str, Any]:
     import numpy as np
 
     from amjax.agents import ALGORITHMS, stack_configs
+    from amjax.sweep.batches import chunk_evals, compiled_programs
     from amjax.sweep.devices import config_sharding, sweep_devices
-    from amjax.sweep.runner import _chunk_evals, _compiled
 
     algo = ALGORITHMS[case["agent"]]
     configs = [_agent_config(case, cost).validate() for cost in _costs(case)]
     stacked = stack_configs(configs)
     keys = jnp.stack([jax.random.PRNGKey(seed) for seed in range(case["configs"])])
     num_evals = configs[0].num_evals
-    chunk_evals = _chunk_evals(num_evals, case["target_chunks"])
+    evals_per_chunk = chunk_evals(num_evals, case["target_chunks"])
     devices = sweep_devices()
     if case["configs"] % len(devices):
         devices = devices[:1]  # the runner would pad the batch; the benchmark keeps the sizes it names
-    init, chunk = _compiled(algo, chunk_evals, tuple(devices))
+    init, chunk = compiled_programs(algo, evals_per_chunk, tuple(devices))
     sharding = config_sharding(devices)
 
     start = time.perf_counter()
@@ -177,13 +178,13 @@ def _build_amjax(case: dict[str, Any]) -> dict[str, Any]:
         # As the runner does (fresh or restored states alike): a host round trip, then split over the devices.
         states = jax.device_put(jax.device_get(states), sharding)
         last = None
-        for _ in range(num_evals // chunk_evals):
+        for _ in range(num_evals // evals_per_chunk):
             states, rows = chunk_compiled(sharded_configs, states)  # states are donated, as in the runner
             last = jax.device_get(rows.eval_return)[:, -1]  # as the runner does: rows come back after each chunk
         jax.block_until_ready(states)
         return float(np.median(last))
 
-    return {"devices": len(devices), "compile_s": compile_s, "run": run, "chunks": num_evals // chunk_evals}
+    return {"devices": len(devices), "compile_s": compile_s, "run": run, "chunks": num_evals // evals_per_chunk}
 
 
 def _run_amjax(case: dict[str, Any]) -> dict[str, Any]:
@@ -745,7 +746,7 @@ def note_lines(args: argparse.Namespace, results: list[dict[str, Any]]) -> list[
             f"DQN warm-up: the first learning_starts = {starts:,} env steps have no gradient step "
             + ", ".join(f"({min(starts / s, 1):.0%} of the run at {s:,} steps)" for s in dqn_steps)
             + ". Both skip that work: the reference's lax.cond on its unbatched step counter, amjax's "
-            "training.uniform_cond on its per-config counters (a real branch under vmap)."
+            "batching.uniform_cond on its per-config counters (a real branch under vmap)."
         )
     if any(r["impl"] == "overhead" for r in results):
         notes.append(

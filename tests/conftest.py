@@ -14,9 +14,8 @@ import jax
 import pytest
 
 # At least two CPU devices, so that the sweep runner's sharded path (`amjax.sweep.devices`) is what the tests run
-# even on a one-core machine; amjax itself asks for one device per core when imported (below), as users get it.
+# even on a one-core machine (before any test module imports gymnax, which starts JAX's backend).
 jax.config.update("jax_num_cpu_devices", max(2, len(__import__("os").sched_getaffinity(0))))
-import amjax  # noqa: E402, F401  (before any test module imports gymnax, which starts JAX's backend)
 
 
 class Rollout(NamedTuple):

@@ -71,7 +71,9 @@ def test_install_cells_install_this_project():
         assert f'AMJAX_SOURCE = "{DISTRIBUTION}[plots]"' in cell, f"{path.name}: installs no {DISTRIBUTION}"
         assert f'name = "{DISTRIBUTION}"' in cell, f"{path.name}: does not recognise its own clone"
         assert not re.search(r"%pip install[^\n]*[\"' ]amjax(\[|[\"' ]|$)", cell), f"{path.name}: installs bare amjax"
-        assert 'hasattr(amjax, name) for name in ("make", "ActiveMeasure")' in cell, f"{path.name}: no identity check"
+        identity = 'name in dir(amjax) for name in ("make", "ActiveMeasure", "use_all_cores")'
+        assert identity in cell, f"{path.name}: no identity check"
+        assert "amjax.use_all_cores()" in cell, f"{path.name}: does not ask for every core"
 
 
 @pytest.fixture(scope="module")

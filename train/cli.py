@@ -15,14 +15,19 @@ from typing import Any
 import jax
 import pandas as pd
 
-from amjax.agents import ALGORITHMS
-from amjax.envs.registry import registered_envs
-from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep
-from amjax.sweep.grid import MAX_CONFIGS, expand, round_schedule
-from amjax.sweep.storage import UnreadableFileError
-from train import replicate, report
-from train.flags import add_logging_arguments, make_loggers
-from train.presets import PRESETS, REPLICATE_HYPERPARAMS
+import amjax
+
+# The CLI is an application: every core for its sweeps, asked for before gymnax (imported below) starts JAX.
+amjax.use_all_cores()
+
+from amjax.agents import ALGORITHMS  # noqa: E402
+from amjax.envs.registry import registered_envs  # noqa: E402
+from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep  # noqa: E402
+from amjax.sweep.grid import MAX_CONFIGS, expand, round_schedule  # noqa: E402
+from amjax.sweep.storage import UnreadableFileError  # noqa: E402
+from train import replicate, report  # noqa: E402
+from train.flags import add_logging_arguments, make_loggers  # noqa: E402
+from train.presets import PRESETS, REPLICATE_HYPERPARAMS  # noqa: E402
 
 
 def _parse_value(text: str) -> Any:

@@ -16,7 +16,7 @@ import numpy as np
 from flax import struct
 
 from amjax.envs.registry import make_env
-from amjax.make import make
+from amjax.factory import make
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 from amjax.wrappers.active_measure import MODES
 from amjax.wrappers.episode_stats import EpisodeStats

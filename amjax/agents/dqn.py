@@ -37,8 +37,8 @@ from amjax.agents.training import (
     UpdateStats,
     greedy_policy,
     make_train,
-    uniform_cond,
 )
+from amjax.batching import uniform_cond
 from amjax.validation import check_choice, check_positive_int
 
 

@@ -30,9 +30,9 @@ from amjax.agents.training import (
     EpisodeSums,
     UpdateStats,
     greedy_policy,
-    in_groups,
     make_train,
 )
+from amjax.batching import in_groups
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 
 
@@ -211,7 +211,7 @@ def shuffle(key: jax.Array, n: int) -> jax.Array:
 
 
 # Under a vmapped sweep the heavy passes run in groups of configurations whose activations fit in a core's cache
-# (`training.in_groups`): about this many bytes of one [rows, width] float32 activation per group.
+# (`batching.in_groups`): about this many bytes of one [rows, width] float32 activation per group.
 _GROUP_BYTES = 1 << 20
 
 

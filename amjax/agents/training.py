@@ -174,82 +174,6 @@ def rescore(algo: Algorithm, config: AgentConfig, state: RunState) -> dict[str, 
     }
 
 
-def uniform_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *operands: Any) -> Any:
-    """`lax.cond(pred, true_fun, false_fun, *operands)` that stays a branch under `vmap`.
-
-    Under `vmap` a batched predicate turns `lax.cond` into a select that computes both branches for every
-    configuration. The configurations of a sweep batch share their static fields, so predicates such as "learning
-    has started" are equal across the batch: here a batched predicate computes only the branch every member takes,
-    and both (then selects) only where members disagree. The functions must be pure functions of `operands` (pass
-    traced config values as operands, do not close over them).
-    """
-
-    @jax.custom_batching.custom_vmap
-    def cond(pred, *operands):
-        return jax.lax.cond(pred, true_fun, false_fun, *operands)
-
-    @cond.def_vmap
-    def rule(axis_size, in_batched, pred, *operands):
-        pred_batched, *operands_batched = in_batched
-        operands = [
-            jax.tree.map(
-                lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))), operand, batched
-            )
-            for operand, batched in zip(operands, operands_batched, strict=True)
-        ]
-        if not pred_batched:
-            pred = jnp.broadcast_to(pred, (axis_size,))
-        true_all, false_all = jax.vmap(true_fun), jax.vmap(false_fun)
-
-        def mixed(operands):
-            return jax.tree.map(
-                lambda a, b: jnp.where(pred.reshape(-1, *[1] * (jnp.ndim(a) - 1)), a, b),
-                true_all(*operands),
-                false_all(*operands),
-            )
-
-        out = jax.lax.cond(
-            jnp.all(pred),
-            lambda ops: true_all(*ops),
-            lambda ops: jax.lax.cond(jnp.any(pred), mixed, lambda o: false_all(*o), ops),
-            operands,
-        )
-        return out, jax.tree.map(lambda _: True, out)
-
-    return cond(pred, *operands)
-
-
-def in_groups(fun: Callable, group_size: int) -> Callable:
-    """`fun` unchanged, except that under `vmap` it runs the batch in consecutive groups of about `group_size`
-    members (`lax.map` over groups, `vmap` within one) instead of all members at once.
-
-    XLA executes a program op by op; vmapped over hundreds of configurations, every intermediate of a minibatch
-    step (e.g. [configs, 256, 64] activations) is megabytes and streams through memory between ops. Groups whose
-    intermediates fit in the core's cache run the same arithmetic faster (PPO's epochs: ~12% at 256
-    configurations). `fun` must be a pure function of its arguments (pass traced config values as arguments).
-    """
-
-    @jax.custom_batching.custom_vmap
-    def grouped(*args):
-        return fun(*args)
-
-    @grouped.def_vmap
-    def rule(axis_size, in_batched, *args):
-        args = [
-            jax.tree.map(lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))), arg, batched)
-            for arg, batched in zip(args, in_batched, strict=True)
-        ]
-        if axis_size <= group_size:
-            out = jax.vmap(fun)(*args)
-        else:
-            # A divisor of the batch near group_size keeps one compiled group body (no remainder group).
-            size = next((d for d in range(group_size, group_size // 2, -1) if axis_size % d == 0), group_size)
-            out = jax.lax.map(lambda a: fun(*a), tuple(args), batch_size=size)
-        return out, jax.tree.map(lambda _: True, out)
-
-    return grouped
-
-
 def _all_finite(tree: Any) -> jax.Array:
     return jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
 
@@ -362,10 +286,8 @@ __all__ = [
     "UpdateStats",
     "evaluate",
     "greedy_policy",
-    "in_groups",
     "init_run",
     "make_train",
     "rescore",
     "run_evals",
-    "uniform_cond",
 ]

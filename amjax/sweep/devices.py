@@ -2,15 +2,18 @@
 
 One XLA CPU program keeps about 1.4 of 2 cores busy on a vmapped sweep (many of its ops are too small to split),
 so the runner splits a batch's configurations over the CPU devices with `jax.shard_map`: each device runs the same
-vmapped program on its share, on its own core, with no communication between them. amjax asks JAX for one CPU
-device per core when it is imported (`amjax.cores`); `JAX_NUM_CPU_DEVICES=1` keeps everything on one.
+vmapped program on its share, on its own core, with no communication between them. JAX has one CPU device per
+core after `amjax.use_all_cores()` (`amjax.cores`; the `amjax` command calls it), otherwise one.
 """
 
 from __future__ import annotations
 
-import functools
+import contextlib
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import jax
+import jaxlib
 import numpy as np
 from jax.interpreters import mlir
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -33,7 +36,6 @@ def shard_configs(function, devices: list[jax.Device]):
     share of the configurations; the plain function when there is one device."""
     if len(devices) == 1:
         return function
-    _lower_mulhi_without_chlo()
     sharding = config_sharding(devices)
     # check_vma=False: the configurations never talk to each other, so nothing varies across devices that the
     # program would need to know about (the check rejects while-loop carries that are created inside the body).
@@ -59,12 +61,47 @@ def _mulhi(x: jax.Array, y: jax.Array) -> jax.Array:
     return jax.lax.convert_element_type(high, x.dtype)
 
 
-@functools.cache
-def _lower_mulhi_without_chlo() -> None:
-    """Lower `lax.mulhi` on CPU through plain integer ops instead of `chlo.mulhi`.
+# jaxlib 0.10.2 cannot compile a sharded CPU program that holds `chlo.mulhi` ("Unable to convert MHLO to
+# StableHLO"), and the trainers' Philox keys (`amjax.agents.rollout`) use it. Versions before 0.10 lowered mulhi
+# through plain ops; the later versions amjax allows (< 0.12) are assumed to need the same until checked.
+_MULHI_NEEDS_PLAIN_LOWERING = tuple(int(p) for p in jaxlib.__version__.split(".")[:2]) >= (0, 10)
 
-    jaxlib 0.10.2 cannot compile a sharded CPU program that holds `chlo.mulhi` ("Unable to convert MHLO to
-    StableHLO"), and the trainers' Philox keys (`amjax.agents.rollout`) use it. The replacement computes the same
-    bits (tests/sweep/test_devices.py); older jaxlibs lowered mulhi through plain ops too.
-    """
+
+@contextlib.contextmanager
+def _mulhi_lowered_without_chlo() -> Iterator[None]:
+    """While open, `lax.mulhi` lowers on CPU through plain integer ops (`_mulhi`, the same bits: see
+    tests/sweep/test_devices.py) instead of `chlo.mulhi`; the previous lowering is restored on exit, so programs
+    outside amjax's sharded sweeps are lowered as JAX would lower them."""
+    if not _MULHI_NEEDS_PLAIN_LOWERING:
+        yield
+        return
+    rules = mlir._platform_specific_lowerings["cpu"]
+    previous = rules.get(jax.lax.mulhi_p)
     mlir.register_lowering(jax.lax.mulhi_p, mlir.lower_fun(_mulhi, multiple_results=False), platform="cpu")
+    try:
+        yield
+    finally:
+        if previous is None:
+            rules.pop(jax.lax.mulhi_p, None)
+        else:
+            rules[jax.lax.mulhi_p] = previous
+
+
+class sharded_jit:  # noqa: N801 (used like jax.jit)
+    """`jax.jit(shard_configs(function, devices), **jit_kwargs)`, traced and lowered with the mulhi workaround
+    (`_mulhi_lowered_without_chlo`) applied to this program only."""
+
+    def __init__(self, function: Callable, devices: list[jax.Device], **jit_kwargs: Any):
+        self._jitted = jax.jit(shard_configs(function, devices), **jit_kwargs)
+        self._sharded = len(devices) > 1
+
+    def _scope(self) -> contextlib.AbstractContextManager:
+        return _mulhi_lowered_without_chlo() if self._sharded else contextlib.nullcontext()
+
+    def __call__(self, *args: Any) -> Any:
+        with self._scope():
+            return self._jitted(*args)
+
+    def lower(self, *args: Any) -> Any:
+        with self._scope():
+            return self._jitted.lower(*args)

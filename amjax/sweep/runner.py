@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 import operator
 import os
 import time
@@ -20,16 +19,16 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from amjax.agents import ALGORITHMS, Algorithm, EvalRow, init_run, rescore, run_evals, stack_configs
+from amjax.agents import Algorithm, EvalRow, init_run, rescore
 from amjax.agents.saved import SavedPolicy, load_policy, save_policy
 from amjax.files import folder_lock, remove_partial_writes
 from amjax.sweep import storage
-from amjax.sweep.devices import config_sharding, shard_configs, sweep_devices
+from amjax.sweep.batches import Batch, chunk_evals, compiled_programs, plan_batches
+from amjax.sweep.devices import config_sharding, sharded_jit, sweep_devices
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 from amjax.sweep.loggers import RunLogger
 
@@ -50,79 +49,15 @@ class SweepResult:
     table: pd.DataFrame  # median / IQR over seeds
 
 
-def _chunk_evals(num_evals: int, target_chunks: int) -> int:
-    """The largest divisor of num_evals giving at least `target_chunks` chunks (or 1)."""
-    want = max(1, num_evals // max(target_chunks, 1))
-    return max(d for d in range(1, want + 1) if num_evals % d == 0)
-
-
-@dataclass
-class _Batch:
-    """Up to `max_batch` configurations of one group, padded to a fixed size so every batch of a group shares
-    one compiled program."""
-
-    name: str
-    algo: Algorithm
-    runs: list[RunConfig]
-    size: int
-
-    def stacked(self) -> tuple[Any, jax.Array]:
-        padded = self.runs + [self.runs[-1]] * (self.size - len(self.runs))
-        configs = stack_configs([r.config for r in padded])
-        keys = jnp.stack([jax.random.PRNGKey(r.seed) for r in padded])
-        return configs, keys
-
-    def pad(self, tree: Any) -> Any:
-        """Rows of the real configurations, padded to the batch size with copies of the last one."""
-        extra = self.size - len(self.runs)
-        return jax.tree.map(lambda x: np.concatenate([x, np.repeat(x[-1:], extra, axis=0)]), tree)
-
-
-def _batches(runs: Sequence[RunConfig], max_batch: int, num_devices: int = 1) -> list[_Batch]:
-    """Each compiled group split into batches of at most `max_batch` configurations (then padded to a multiple
-    of `num_devices`, so every device gets an equal share)."""
-    batches = []
-    for group in group_runs(runs):
-        algo = ALGORITHMS[group[0].agent]
-        count = math.ceil(len(group) / max_batch)
-        per_batch = math.ceil(len(group) / count)
-        size = math.ceil(per_batch / num_devices) * num_devices
-        for i in range(count):
-            part = group[i * per_batch : (i + 1) * per_batch]
-            batches.append(_Batch(f"{group[0].agent}-{part[0].config_id}", algo, part, size))
-    return batches
-
-
-@functools.cache
-def _compiled(
-    algo: Algorithm, chunk_evals: int, devices: tuple[jax.Device, ...] | None = None
-) -> tuple[Callable, Callable]:
-    """Jitted init and chunk functions of an algorithm; cached so reruns in one process reuse the compiled
-    programs (jax caches one per shape and static config). The chunk spreads the configurations over `devices`
-    (default: `sweep_devices()`); give it arguments placed with `config_sharding(devices)`."""
-    devices = list(devices or sweep_devices())
-    # Initialisation runs configuration by configuration (lax.map), not vmapped: cheap, and it keeps batched
-    # linear algebra out of network initialisation (the jaxlib CPU deadlock in the research notes).
-    init = jax.jit(lambda configs, keys: jax.lax.map(lambda ck: init_run(algo, *ck), (configs, keys)))
-    batched_chunk = jax.vmap(lambda config, state: run_evals(algo, config, state, chunk_evals))
-    # Shardings pinned on both sides, so the states a chunk returns (zero-size arrays included, which XLA would
-    # otherwise return replicated) are placed as the next chunk expects them.
-    sharding = config_sharding(devices)
-    chunk = jax.jit(
-        shard_configs(batched_chunk, devices), donate_argnums=1, in_shardings=sharding, out_shardings=sharding
-    )
-    return init, chunk
-
-
 @functools.cache
 def _compiled_rescore(algo: Algorithm, devices: tuple[jax.Device, ...]) -> Callable:
     """Jitted re-scoring of every configuration's best policy (`training.rescore`), split over `devices`."""
     sharding = config_sharding(list(devices))
     batched = jax.vmap(lambda config, state: rescore(algo, config, state))
-    return jax.jit(shard_configs(batched, list(devices)), in_shardings=sharding, out_shardings=sharding)
+    return sharded_jit(batched, list(devices), in_shardings=sharding, out_shardings=sharding)
 
 
-def _rescored_rows(batch: _Batch, configs: Any, states: Any, devices: tuple[jax.Device, ...]) -> pd.DataFrame:
+def _rescored_rows(batch: Batch, configs: Any, states: Any, devices: tuple[jax.Device, ...]) -> pd.DataFrame:
     """Each real configuration's best policy on fresh test episodes (one row per configuration)."""
     scores = jax.device_get(_compiled_rescore(batch.algo, devices)(configs, states))
     real = len(batch.runs)
@@ -135,7 +70,7 @@ def _rescored_rows(batch: _Batch, configs: Any, states: Any, devices: tuple[jax.
     })
 
 
-def _check_memory(batches: Sequence[_Batch], memory: int) -> None:
+def _check_memory(batches: Sequence[Batch], memory: int) -> None:
     """Refuse, before anything is written or compiled, a batch whose train states (sized without allocating them:
     `jax.eval_shape`) would not fit in `memory` bytes three times over (the states, the chunk's new states and
     the checkpoint's copy)."""
@@ -158,12 +93,12 @@ def _memory_bytes() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-def _real(batch: _Batch, tree: Any) -> Any:
+def _real(batch: Batch, tree: Any) -> Any:
     """The rows of a batched pytree that belong to real (not padding) configurations."""
     return jax.tree.map(lambda x: x[: len(batch.runs)], tree)
 
 
-def _rows(batch: _Batch, rows: EvalRow, hyper_columns: list[str]) -> pd.DataFrame:
+def _rows(batch: Batch, rows: EvalRow, hyper_columns: list[str]) -> pd.DataFrame:
     """The evaluation rows of the real (unpadded) configurations of a batch as a tidy table."""
     arrays = {k: np.asarray(v)[: len(batch.runs)] for k, v in vars(rows).items()}
     num_evals = arrays["env_steps"].shape[1]
@@ -209,7 +144,7 @@ def load_sweep_policy(out: str | Path, config_id: str) -> SavedPolicy:
 
 
 def _save_policies(
-    out: Path, batch: _Batch, states: Any, evals_done: int, results: pd.DataFrame, rescored: pd.DataFrame | None
+    out: Path, batch: Batch, states: Any, evals_done: int, results: pd.DataFrame, rescored: pd.DataFrame | None
 ) -> None:
     """Write each real configuration's best policy so far (parameters of its best evaluation), with its re-scored
     figures once the configuration has finished."""
@@ -266,7 +201,7 @@ def _claim_folder(out: Path, spec: SweepSpec, runs: Sequence[RunConfig], extra: 
 
 
 def _train_batch(
-    batch: _Batch,
+    batch: Batch,
     out: Path,
     results: pd.DataFrame | None,
     hyper_columns: list[str],
@@ -285,9 +220,9 @@ def _train_batch(
     returns the results and re-scoring tables."""
     config0 = batch.runs[0].config
     num_evals = config0.num_evals
-    chunk_evals = _chunk_evals(num_evals, target_chunks)
+    evals_per_chunk = chunk_evals(num_evals, target_chunks)
     ckpt_path = out / "checkpoints" / f"{batch.name}.msgpack"
-    init, chunk = _compiled(batch.algo, chunk_evals, devices)
+    init, chunk = compiled_programs(batch.algo, evals_per_chunk, devices)
     configs, keys = batch.stacked()
     states = jax.device_get(init(configs, keys))
     evals_done = 0
@@ -306,7 +241,7 @@ def _train_batch(
         start = time.monotonic()
         states, rows = chunk(configs, states)
         rows = jax.device_get(rows)
-        evals_done += chunk_evals
+        evals_done += evals_per_chunk
         new_rows = _rows(batch, rows, hyper_columns)
         results = storage.merge_rows(results, new_rows)
         storage.write_table(out / "results", results)
@@ -314,11 +249,11 @@ def _train_batch(
         for logger in loggers:
             logger.log(new_rows)
         if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
-            if save_policies:
+            if save_policies and evals_done < num_evals:  # a finished batch saves them once, re-scored, below
                 _save_policies(out, batch, states, evals_done, results, None)
             storage.save_checkpoint(ckpt_path, _real(batch, states), evals_done)
             last_checkpoint = time.monotonic()
-        steps = len(batch.runs) * chunk_evals * config0.eval_every
+        steps = len(batch.runs) * evals_per_chunk * config0.eval_every
         best = np.nanmedian(np.asarray(states.best_return)[: len(batch.runs)])
         bar.set_postfix({"steps/s": f"{steps / (time.monotonic() - start):.3g}", "median best": f"{best:.1f}"})
         bar.set_description(label)
@@ -367,7 +302,8 @@ def run_sweep(
       loggers: also send each chunk's new rows to these (e.g. `TensorBoardLogger(out / "tensorboard")`,
         `WandbLogger(project, out)`); they are closed when the sweep ends or stops.
       devices: the devices each batch's configurations are split over (default: `sweep_devices()`, every local
-        device: one per CPU core, see `amjax.cores`). Results do not depend on it; a sweep may resume on others.
+        device: one per CPU core after `amjax.use_all_cores()`, else one). Results do not depend on it; a sweep
+        may resume on others.
       metadata: extra entries for a new folder's metadata.json (e.g. the budget a command line asked for before
         `round_schedule`).
 
@@ -380,7 +316,7 @@ def run_sweep(
     out = Path(out)
     hyper_columns = sorted({k for r in runs for k in r.hyperparams})
     devices = tuple(devices or sweep_devices())
-    batches = _batches(runs, max_batch, len(devices))
+    batches = plan_batches(runs, max_batch, len(devices))
     _check_memory(batches, _memory_bytes())
     _check_folder(out, spec, compare=False)  # before the lock file: a foreign folder is left as it was
     try:

@@ -17,6 +17,7 @@ import pytest
 
 from amjax.envs import lunar_lander as ll
 from amjax.envs.lunar_lander import EnvParams, LunarLander, reference
+from amjax.envs.lunar_lander import constants as llc
 
 
 def _gymnasium():
@@ -278,3 +279,72 @@ def test_validate_params_accepts_valid_and_batched() -> None:
     ll.validate_params(EnvParams(gravity=jnp.array([-1.0, -10.0])))
     with pytest.raises(ValueError, match="gravity"):
         ll.validate_params(EnvParams(gravity=jnp.array([-1.0, -13.0])))
+
+
+# --- exact_free_flight: the joints' fixed point, and the compacted sweeps under vmap ------------
+
+
+def test_exact_joint_solve_is_the_sweeps_fixed_point() -> None:
+    """`solve_joints_exact` equals Box2D's joint sweeps run to convergence, for every limit state and motor mode."""
+    from amjax.envs.lunar_lander.joints import joint_constraint, joint_velocity, solve_joints_exact
+
+    rng = np.random.default_rng(0)
+    n = 96
+    hull = rng.normal(size=n) * 0.3
+    # Leg angles around their limits (lower, inside, upper), so every limit state and motor mode occurs.
+    offsets = rng.uniform(-0.08, 0.08, (2, n)) + np.where(rng.random((2, n)) < 0.5, 0.0, 0.25)
+    angles = np.stack([hull, hull + llc.JOINT_REFERENCE[0] + llc.JOINT_LOWER[0] + offsets[0],
+                       hull + llc.JOINT_REFERENCE[1] + llc.JOINT_UPPER[1] - offsets[1]], 1).astype(np.float32)
+    velocities = rng.normal(size=(n, 3, 3)).astype(np.float32)
+
+    def solve(a, v, sweeps):
+        limit = [jnp.where(a[k + 1] - a[0] - llc.JOINT_REFERENCE[k] <= llc.JOINT_LOWER[k], llc.LIMIT_AT_LOWER,
+                           jnp.where(a[k + 1] - a[0] - llc.JOINT_REFERENCE[k] >= llc.JOINT_UPPER[k],
+                                     llc.LIMIT_AT_UPPER, llc.LIMIT_INACTIVE)) for k in range(2)]
+        joints = [joint_constraint(a[0], a[k + 1], k, limit[k]) for k in range(2)]
+        bodies = tuple((v[b, 0], v[b, 1], v[b, 2]) for b in range(3))
+        zero = jnp.float32(0.0)
+
+        def sweep(_, carry):
+            bodies, impulses, motors = (list(x) for x in carry)
+            for k in llc.JOINT_ORDER:
+                bodies[0], bodies[k + 1], impulses[k], motors[k] = joint_velocity(
+                    bodies[0], bodies[k + 1], joints[k], k, impulses[k], motors[k])
+            return tuple(bodies), tuple(impulses), tuple(motors)
+
+        swept = jax.lax.fori_loop(0, sweeps, sweep, (bodies, ((zero,) * 3,) * 2, (zero,) * 2))[0]
+        return jnp.stack(limit), jnp.array(solve_joints_exact(bodies, joints)[0]), jnp.array(swept)
+
+    limits, exact, swept = jax.jit(jax.vmap(lambda a, v: solve(a, v, 20_000)))(angles, velocities)
+    assert set(np.unique(np.asarray(limits))) == {llc.LIMIT_INACTIVE, llc.LIMIT_AT_LOWER, llc.LIMIT_AT_UPPER}
+    np.testing.assert_allclose(np.asarray(exact), np.asarray(swept), atol=2e-4)
+
+
+def test_exact_free_flight_vmapped_equals_one_env_at_a_time() -> None:
+    """Under vmap the envs on the ground are swept as a compacted batch and scattered back: the batch gives what
+    each env gives alone, contacts and auto-resets included."""
+    exact = LunarLander(exact_free_flight=True)
+    params = exact.default_params
+    n, steps = 24, 110
+
+    def run(env, key, batched):
+        def one_step(state, key, action):
+            obs, state, reward, *_ = env.step(key, state, action, params)
+            return state, (obs, reward, jnp.any(state.touching[1:]))
+
+        step = jax.vmap(one_step) if batched else lambda *xs: jax.lax.map(lambda x: one_step(*x), xs)
+        _, state = jax.vmap(env.reset, (0, None))(jax.random.split(key, n), params)
+
+        def body(state, key):
+            keys = jax.random.split(key, n + 1)
+            return step(state, keys[1:], jax.random.randint(keys[0], (n,), 0, 4))
+
+        _, (obs, reward, touching) = jax.lax.scan(body, state, jax.random.split(key, steps))
+        return obs, reward, jnp.any(touching, axis=0)
+
+    key = jax.random.PRNGKey(7)
+    obs, reward, touched = jax.jit(lambda k: run(exact, k, True))(key)
+    obs_one, reward_one, _ = jax.jit(lambda k: run(exact, k, False))(key)
+    assert 0 < int(touched.sum()) < n  # some envs, not all, had a leg on the ground: the compacted path ran
+    np.testing.assert_allclose(np.asarray(obs), np.asarray(obs_one), atol=1e-3)  # rounding, grown over 110 steps
+    np.testing.assert_allclose(np.asarray(reward), np.asarray(reward_one), atol=1e-2)

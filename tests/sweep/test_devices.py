@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -71,12 +72,64 @@ def test_mulhi_replacement_is_exact(bits, signed, data):
     np.testing.assert_array_equal(np.asarray(got), expected)
 
 
-def test_import_gives_one_device_per_core_unless_told():
-    code = "import amjax, jax, os; print(len(jax.devices('cpu')), len(os.sched_getaffinity(0)))"
-    env = {k: v for k, v in os.environ.items() if k != "JAX_NUM_CPU_DEVICES"}
-    devices, cores = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
-                                    check=True).stdout.split()
-    assert devices == cores
-    one = subprocess.run([sys.executable, "-c", code], env={**env, "JAX_NUM_CPU_DEVICES": "1"},
-                         capture_output=True, text=True, check=True).stdout.split()[0]
-    assert one == "1"
+def _python(code: str, **env: str) -> str:
+    """Run `code` in a fresh interpreter, without the caller's JAX device settings; its stdout."""
+    clean = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
+    done = subprocess.run([sys.executable, "-c", code], env={**clean, **env}, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout
+
+
+MULHI_RULES = (
+    "from jax._src.interpreters import mlir; "
+    "rules = lambda: jax.lax.mulhi_p in mlir._platform_specific_lowerings['cpu']"
+)
+
+
+def test_import_leaves_jax_as_it_is():
+    """Importing amjax (and using it) neither changes JAX's devices nor registers lowering rules."""
+    code = f"""
+import jax
+{MULHI_RULES}
+before = rules()
+import amjax, amjax.sweep, amjax.agents
+env, params = amjax.make("CartPole-v0", cost=0.1)
+print(len(jax.devices("cpu")), jax.config.jax_num_cpu_devices, before, rules())
+"""
+    assert _python(code).split() == ["1", "-1", "False", "False"]
+
+
+def test_use_all_cores_asks_for_one_device_per_core_unless_told():
+    code = "import amjax, jax, os; print(amjax.use_all_cores(), len(jax.devices('cpu')), len(os.sched_getaffinity(0)))"
+    asked, devices, cores = _python(code).split()
+    assert asked == devices == cores
+    assert _python(code, JAX_NUM_CPU_DEVICES="1").split()[:2] == ["1", "1"]
+
+
+def test_use_all_cores_after_jax_started_keeps_devices_and_says_so():
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("one core: nothing to warn about")
+    code = """
+import warnings, jax, amjax
+jax.numpy.zeros(1).block_until_ready()
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    count = amjax.use_all_cores()
+print(count, len(jax.devices("cpu")), any("use_all_cores" in str(w.message) for w in caught))
+"""
+    assert _python(code).split() == ["1", "1", "True"]
+
+
+def test_sharded_sweep_restores_the_mulhi_lowering(tmp_path):
+    """The plain-ops mulhi lowering applies while a sharded sweep is lowered, not after it."""
+    code = f"""
+import jax
+jax.config.update("jax_num_cpu_devices", 2)
+{MULHI_RULES}
+from amjax.sweep import SweepSpec, run_sweep
+spec = SweepSpec(envs=("CartPole-v0",), agents=("ppo",), costs=(0.1,), seeds=(0, 1), total_timesteps=2048,
+                 eval_every=1024, eval_episodes=1)
+run_sweep(spec, {str(tmp_path / "out")!r}, progress=False)
+print(rules())
+"""
+    assert _python(code).split()[-1] == "False"

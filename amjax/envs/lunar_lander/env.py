@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -11,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from gymnax.environments import environment, spaces
 
+from amjax.batching import uniform_cond
 from amjax.envs.lunar_lander.collide import body_origins, terrain_from_heights
 from amjax.envs.lunar_lander.constants import (
     CHUNKS,
@@ -141,14 +141,14 @@ def _wind(state: EnvState, params: EnvParams):
 
 def _physics_step(
     state, m_power, s_power, direction, dispersion, extra_force, params, contacts=True,
-    velocity_iterations=VELOCITY_ITERATIONS,
+    velocity_iterations=VELOCITY_ITERATIONS, exact_free_flight=False,
 ):
     state, wind_f, wind_t = _wind(state, params)
     state = _engine_impulses(state, m_power, s_power, direction, dispersion)
     force = jnp.zeros((3, 2), jnp.float32).at[0].set(extra_force + jnp.stack([wind_f, 0.0]))
     torque = jnp.zeros(3, jnp.float32).at[0].set(wind_t)
     gravity = jnp.asarray(params.gravity, jnp.float32)
-    return world_step(state, force, torque, gravity, contacts, velocity_iterations)
+    return world_step(state, force, torque, gravity, contacts, velocity_iterations, exact_free_flight)
 
 
 def initial_state(heights: jax.Array, wind_offsets: jax.Array | None = None) -> EnvState:
@@ -190,6 +190,7 @@ def reset_from_draws(
     params: EnvParams,
     wind_offsets: jax.Array | None = None,
     velocity_iterations: int = VELOCITY_ITERATIONS,
+    exact_free_flight: bool = False,
 ) -> tuple[jax.Array, EnvState]:
     """Gymnasium's reset given its draws: 12 heights ~U(0, H/2), force ~U(+-1000)^2, and (wind
     only) two integers in [-9999, 9999). Runs the reset step (nop action) like Gymnasium."""
@@ -197,7 +198,7 @@ def reset_from_draws(
     zero = jnp.float32(0.0)
     state = _physics_step(
         state, zero, zero, zero, jnp.zeros(2, jnp.float32), jnp.asarray(init_force, jnp.float32),
-        params, contacts=False, velocity_iterations=velocity_iterations,
+        params, contacts=False, velocity_iterations=velocity_iterations, exact_free_flight=exact_free_flight,
     )
     obs = observation(state)
     # Fields that start as constants vary with the draws, as shard_map's check_vma expects of loop carries.
@@ -211,12 +212,13 @@ def step_from_draws(
     params: EnvParams,
     continuous: bool = False,
     velocity_iterations: int = VELOCITY_ITERATIONS,
+    exact_free_flight: bool = False,
 ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[str, jax.Array]]:
     """Gymnasium's step given the two per-step U(-1, 1) dispersion draws."""
     m_power, s_power, direction = decode_action(action, continuous)
     state = _physics_step(
         state, m_power, s_power, direction, dispersion, jnp.zeros(2, jnp.float32), params,
-        velocity_iterations=velocity_iterations,
+        velocity_iterations=velocity_iterations, exact_free_flight=exact_free_flight,
     )
     obs = observation(state)
     reward, terminated, shp = reward_and_termination(
@@ -227,53 +229,30 @@ def step_from_draws(
     return obs, state, reward, terminated, info
 
 
-def _branch_when_any(pred: jax.Array, true_fun: Callable, false_fun: Callable, *operands: Any) -> Any:
-    """``lax.cond(pred, true_fun, false_fun, *operands)`` that, under ``vmap``, runs ``true_fun`` only when some
-    member of the batch takes it (then it runs both and selects per member), at every level of nested vmaps.
-
-    A plain ``lax.cond`` with a batched predicate becomes a select that computes both branches for every member.
-    """
-
-    @jax.custom_batching.custom_vmap
-    def cond(pred, *operands):
-        return jax.lax.cond(pred, true_fun, false_fun, *operands)
-
-    @cond.def_vmap
-    def rule(axis_size, in_batched, pred, *operands):
-        pred_batched, *operands_batched = in_batched
-        pred = pred if pred_batched else jnp.broadcast_to(pred, (axis_size,))
-        operands = [
-            jax.tree.map(lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))), op, batched)
-            for op, batched in zip(operands, operands_batched, strict=True)
-        ]
-
-        def per_member(pred, *operands):
-            taken, kept = jax.vmap(true_fun)(*operands), jax.vmap(false_fun)(*operands)
-            return jax.tree.map(
-                lambda a, b: jnp.where(pred.reshape(-1, *[1] * (jnp.ndim(a) - 1)), a, b), taken, kept
-            )
-
-        out = _branch_when_any(
-            jnp.any(pred), per_member, lambda _, *operands: jax.vmap(false_fun)(*operands), pred, *operands
-        )
-        return out, jax.tree.map(lambda _: True, out)
-
-    return cond(pred, *operands)
-
-
 class LunarLander(environment.Environment[EnvState, EnvParams]):
     """LunarLander-v3 (discrete, or continuous with ``continuous=True``) in pure JAX.
 
-    ``velocity_iterations`` (static) defaults to Box2D's 180 as Gymnasium calls it; fewer
-    iterations run faster and deviate from Box2D by the amounts in docs/lunar_lander.md.
+    Solver settings (static): ``velocity_iterations``, the Gauss-Seidel sweeps of a step with a leg on the ground,
+    defaults to Box2D's 180 as Gymnasium calls it (fewer run faster and deviate from Box2D by the amounts in
+    docs/lunar_lander.md). With ``exact_free_flight`` (default) a step without leg contacts solves its joints
+    exactly, the fixed point those sweeps converge to, and a vmapped batch runs the sweeps only for the envs that
+    touch the ground; ``False`` runs the sweeps for every env, as Box2D does.
     """
 
-    def __init__(self, continuous: bool = False, velocity_iterations: int = VELOCITY_ITERATIONS):
+    def __init__(
+        self,
+        continuous: bool = False,
+        velocity_iterations: int = VELOCITY_ITERATIONS,
+        exact_free_flight: bool = False,
+    ):
         super().__init__()
-        if int(velocity_iterations) < 1:
-            raise ValueError(f"velocity_iterations must be >= 1, got {velocity_iterations}")
+        if isinstance(velocity_iterations, bool) or int(velocity_iterations) < 1:
+            raise ValueError(f"velocity_iterations must be an int >= 1, got {velocity_iterations!r}")
+        if not isinstance(exact_free_flight, bool):
+            raise ValueError(f"exact_free_flight must be True or False, got {exact_free_flight!r}")
         self.continuous = bool(continuous)
         self.velocity_iterations = int(velocity_iterations)
+        self.exact_free_flight = exact_free_flight
         self.obs_shape = (8,)
 
     @property
@@ -305,7 +284,7 @@ class LunarLander(environment.Environment[EnvState, EnvParams]):
         obs_st, state_st, reward, terminated, info = self.step_env(key_step, state, action, params)
         truncated = self.is_truncated(state_st, params)
         done = jnp.logical_or(terminated, truncated)
-        obs, state = _branch_when_any(
+        obs, state = uniform_cond(
             done,
             lambda key, params, _: self.reset_env(key, params),
             lambda key, params, stepped: stepped,
@@ -319,7 +298,7 @@ class LunarLander(environment.Environment[EnvState, EnvParams]):
     ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[Any, Any]]:
         dispersion = jax.random.uniform(key, (2,), jnp.float32, -1.0, 1.0)
         obs, state, reward, terminated, info = step_from_draws(
-            state, action, dispersion, params, self.continuous, self.velocity_iterations
+            state, action, dispersion, params, self.continuous, self.velocity_iterations, self.exact_free_flight
         )
         info = {**info, "discount": 1.0 - terminated.astype(jnp.float32)}
         return obs, state, reward, terminated, info
@@ -329,7 +308,7 @@ class LunarLander(environment.Environment[EnvState, EnvParams]):
         heights = jax.random.uniform(k_h, (CHUNKS + 1,), jnp.float32, 0.0, H / 2)
         force = jax.random.uniform(k_f, (2,), jnp.float32, -INITIAL_RANDOM, INITIAL_RANDOM)
         wind = jax.random.randint(k_w, (2,), -9999, 9999)
-        return reset_from_draws(heights, force, params, wind, self.velocity_iterations)
+        return reset_from_draws(heights, force, params, wind, self.velocity_iterations, self.exact_free_flight)
 
     def get_obs(self, state: EnvState, params: EnvParams | None = None, key: Any = None) -> jax.Array:
         return observation(state)

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
+from amjax.batching import select_compacted
 from amjax.envs.lunar_lander.collide import candidate_edges, collide_all
 from amjax.envs.lunar_lander.constants import (
     ANGULAR_SLEEP_TOL,
@@ -27,8 +29,13 @@ from amjax.envs.lunar_lander.constants import (
     VELOCITY_ITERATIONS,
 )
 from amjax.envs.lunar_lander.contacts import contact_constraint, contact_position, contact_velocity
-from amjax.envs.lunar_lander.joints import joint_constraint, joint_position, joint_velocity
+from amjax.envs.lunar_lander.joints import joint_constraint, joint_position, joint_velocity, solve_joints_exact
 from amjax.envs.lunar_lander.state import EnvState
+
+# Under vmap with exact_free_flight, the envs with a leg on the ground are swept as a batch of the smallest of these
+# fractions of the envs that holds them (random actions touch the ground on ~2.4% of env-steps, at most ~7% of a
+# 256-env batch at once); when more envs touch, every env is swept.
+CONTACT_CAPACITIES = (1 / 16, 1 / 4)
 
 
 def _materialized(it: jax.Array, fn: Callable, *operands: Any) -> Any:
@@ -64,6 +71,57 @@ def vary_together(tree: Any) -> Any:
 
     return jax.tree.map(vary, tree)
 
+
+def _gauss_seidel(bv, joints, jimp, jmot, arrays, cimp, *, bodies, iterations):
+    """Box2D's velocity solve: warm start (contacts, then joints), then ``iterations`` sweeps of joints then
+    contacts (b2Island::Solve order). Returns velocities and accumulated impulses."""
+    bv, jimp, jmot, cimp = list(bv), list(jimp), list(jmot), list(cimp)
+    cons = [{**con, "b": b} for con, b in zip(arrays, bodies, strict=True)]
+    for con, (n1, n2, t1, t2) in zip(cons, cimp, strict=True):
+        b = con["b"]
+        vx, vy, w = bv[b]
+        for j, (nj, tj) in enumerate(((n1, t1), (n2, t2))):
+            rx, ry = (con["r1x"], con["r1y"]) if j == 0 else (con["r2x"], con["r2y"])
+            act = con["vcount"] > j
+            pxx = jnp.where(act, nj * con["nx"] + tj * con["ny"], 0.0)
+            pyy = jnp.where(act, nj * con["ny"] - tj * con["nx"], 0.0)
+            vx, vy = vx + INV_MASS[b] * pxx, vy + INV_MASS[b] * pyy
+            w = w + INV_I[b] * (rx * pyy - ry * pxx)
+        bv[b] = (vx, vy, w)
+    for k, j in enumerate(joints):
+        (ix, iy, iz), mot = jimp[k], jmot[k]
+        (vax, vay, wa), (vbx, vby, wb) = bv[0], bv[k + 1]
+        bv[0] = (vax - INV_MASS[0] * ix, vay - INV_MASS[0] * iy,
+                 wa - INV_I[0] * (j["rax"] * iy - j["ray"] * ix + mot + iz))
+        bv[k + 1] = (vbx + INV_MASS[k + 1] * ix, vby + INV_MASS[k + 1] * iy,
+                     wb + INV_I[k + 1] * (j["rbx"] * iy - j["rby"] * ix + mot + iz))
+
+    def vel_iter(it, carry):
+        bv, jimp, jmot, cimp = (list(x) for x in carry)
+        for k in JOINT_ORDER:
+            bv[0], bv[k + 1], jimp[k], jmot[k] = _materialized(
+                it, lambda *ops, k=k: joint_velocity(*ops[:3], k, *ops[3:]),
+                bv[0], bv[k + 1], joints[k], jimp[k], jmot[k],
+            )
+        for idx, (con, b) in enumerate(zip(arrays, bodies, strict=True)):
+            bv[b], *new = _materialized(
+                it, lambda v, con, *imp, b=b: contact_velocity(v, {**con, "b": b}, *imp),
+                bv[b], con, *cimp[idx],
+            )
+            cimp[idx] = tuple(new)
+        return tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp)
+
+    carry = vary_together((tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp)))
+    return jax.lax.fori_loop(0, iterations, vel_iter, carry)
+
+
+def _fixed_point(bv, joints, jimp, jmot, arrays, cimp):
+    """The velocity solve of an island without contact constraints, solved exactly (``solve_joints_exact``):
+    what the Gauss-Seidel sweeps converge to. Contact impulses are returned unchanged."""
+    bv, jimp, jmot = solve_joints_exact(bv, joints)
+    return vary_together((tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp)))
+
+
 def world_step(
     state: EnvState,
     force: jax.Array,
@@ -71,11 +129,14 @@ def world_step(
     gravity: jax.Array,
     contacts: bool = True,
     velocity_iterations: int = VELOCITY_ITERATIONS,
+    exact_free_flight: bool = False,
 ):
     """One b2World::Step(1/50, 180, 60): collide, solve the island, sleep bookkeeping.
 
     ``contacts=False`` (static) skips collision entirely; used for the reset step, which
-    Gymnasium runs 13 m above the highest possible terrain.
+    Gymnasium runs 13 m above the highest possible terrain. ``exact_free_flight`` (static) solves the
+    velocities of an island without leg contacts exactly (the fixed point of the sweeps) instead of by
+    ``velocity_iterations`` sweeps, which Box2D stops before they converge.
     """
     # -- b2ContactManager::Collide at the start of the step (positions of the last step).
     if contacts:
@@ -119,8 +180,8 @@ def world_step(
     a = [state.angle[b] for b in range(3)]
     bv = [(vel[b, 0], vel[b, 1], omega[b]) for b in range(3)]
 
-    # -- Contact constraints of the legs' two candidate edges, warm started.
-    cons, cimp = [], []
+    # -- Contact constraints of the legs' two candidate edges, and the joints' constraints.
+    cons = []
     for b in CONTACT_BODY_ORDER if contacts else ():
         for e_idx in range(2):
             con = contact_constraint(
@@ -128,55 +189,29 @@ def world_step(
                 lpts[b, e_idx], c[b], a[b],
             )
             cons.append((con, e_idx, True))
-            n1, n2, t1, t2 = ni0[b, e_idx, 0], ni0[b, e_idx, 1], ti0[b, e_idx, 0], ti0[b, e_idx, 1]
-            cimp.append((n1, n2, t1, t2))
-            vx, vy, w = bv[b]
-            for j, (nj, tj) in enumerate(((n1, t1), (n2, t2))):
-                rx, ry = (con["r1x"], con["r1y"]) if j == 0 else (con["r2x"], con["r2y"])
-                act = con["vcount"] > j
-                pxx = jnp.where(act, nj * con["nx"] + tj * con["ny"], 0.0)
-                pyy = jnp.where(act, nj * con["ny"] - tj * con["nx"], 0.0)
-                vx, vy = vx + INV_MASS[b] * pxx, vy + INV_MASS[b] * pyy
-                w = w + INV_I[b] * (rx * pyy - ry * pxx)
-            bv[b] = (vx, vy, w)
-
-    # -- Joint constraints, warm started (dtRatio = 1; everything is zero on the first step).
-    joints, jimp, jmot = [], [], []
-    for k in range(2):
-        j = joint_constraint(a[0], a[k + 1], k, state.limit_state[k])
-        joints.append(j)
-        ix, iy = state.joint_impulse[k, 0], state.joint_impulse[k, 1]
-        iz = jnp.where(j["changed"] | (j["state"] == LIMIT_INACTIVE), 0.0, state.joint_impulse[k, 2])
-        mot = state.motor_impulse[k]
-        jimp.append((ix, iy, iz))
-        jmot.append(mot)
-        (vax, vay, wa), (vbx, vby, wb) = bv[0], bv[k + 1]
-        bv[0] = (vax - INV_MASS[0] * ix, vay - INV_MASS[0] * iy,
-                 wa - INV_I[0] * (j["rax"] * iy - j["ray"] * ix + mot + iz))
-        bv[k + 1] = (vbx + INV_MASS[k + 1] * ix, vby + INV_MASS[k + 1] * iy,
-                     wb + INV_I[k + 1] * (j["rbx"] * iy - j["rby"] * ix + mot + iz))
-
-    # -- Velocity iterations: joints then contacts (b2Island::Solve order).
-    def vel_iter(it, carry):
-        bv, jimp, jmot, cimp = (list(x) for x in carry)
-        for k in JOINT_ORDER:
-            bv[0], bv[k + 1], jimp[k], jmot[k] = _materialized(
-                it, lambda *ops, k=k: joint_velocity(*ops[:3], k, *ops[3:]),
-                bv[0], bv[k + 1], joints[k], jimp[k], jmot[k],
-            )
-        for idx, (con, _, _) in enumerate(cons):
-            b = con["b"]
-            arrays = {name: value for name, value in con.items() if name != "b"}
-            bv[b], *new = _materialized(
-                it, lambda v, arrays, *imp, b=b: contact_velocity(v, {**arrays, "b": b}, *imp),
-                bv[b], arrays, *cimp[idx],
-            )
-            cimp[idx] = tuple(new)
-        return tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp)
-
-    bv, jimp, jmot, cimp = jax.lax.fori_loop(
-        0, velocity_iterations, vel_iter, vary_together((tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp)))
-    )
+    joints = [joint_constraint(a[0], a[k + 1], k, state.limit_state[k]) for k in range(2)]
+    cimp = [(ni0[con["b"], e, 0], ni0[con["b"], e, 1], ti0[con["b"], e, 0], ti0[con["b"], e, 1]) for con, e, _ in cons]
+    jimp = [
+        (state.joint_impulse[k, 0], state.joint_impulse[k, 1],
+         jnp.where(j["changed"] | (j["state"] == LIMIT_INACTIVE), 0.0, state.joint_impulse[k, 2]))
+        for k, j in enumerate(joints)
+    ]
+    jmot = [state.motor_impulse[k] for k in range(2)]
+    bodies = [con["b"] for con, _, _ in cons]
+    arrays = [{name: value for name, value in con.items() if name != "b"} for con, _, _ in cons]
+    operands = (tuple(bv), joints, tuple(jimp), tuple(jmot), arrays, tuple(cimp))
+    gauss_seidel = partial(_gauss_seidel, bodies=bodies, iterations=velocity_iterations)
+    if not exact_free_flight:
+        bv, jimp, jmot, cimp = gauss_seidel(*operands)
+    elif not cons:
+        bv, jimp, jmot, cimp = _fixed_point(*operands)
+    else:
+        # Envs with a leg on the ground sweep as Box2D does; under vmap they are gathered into a smaller batch
+        # while the rest take the joints' fixed point.
+        in_contact = jnp.any(jnp.stack([con["vcount"] > 0 for con, _, _ in cons]))
+        bv, jimp, jmot, cimp = select_compacted(
+            in_contact, gauss_seidel, _fixed_point, *operands, capacities=CONTACT_CAPACITIES
+        )
 
     # -- Store impulses per (body, edge); points beyond the solved count keep their values.
     normal_imp, tangent_imp = ni0, ti0
