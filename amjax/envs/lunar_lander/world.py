@@ -75,10 +75,8 @@ def vary_together(tree: Any) -> Any:
 def _gauss_seidel(bv, joints, jimp, jmot, arrays, cimp, *, bodies, iterations):
     """Box2D's velocity solve: warm start (contacts, then joints), then ``iterations`` sweeps of joints then
     contacts (b2Island::Solve order). Returns velocities and accumulated impulses."""
-    bv, jimp, jmot, cimp = list(bv), list(jimp), list(jmot), list(cimp)
-    cons = [{**con, "b": b} for con, b in zip(arrays, bodies, strict=True)]
-    for con, (n1, n2, t1, t2) in zip(cons, cimp, strict=True):
-        b = con["b"]
+    bv = list(bv)
+    for con, b, (n1, n2, t1, t2) in zip(arrays, bodies, cimp, strict=True):
         vx, vy, w = bv[b]
         for j, (nj, tj) in enumerate(((n1, t1), (n2, t2))):
             rx, ry = (con["r1x"], con["r1y"]) if j == 0 else (con["r2x"], con["r2y"])
