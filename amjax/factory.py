@@ -34,11 +34,10 @@ def make(
     """
     check_bool("vanilla", vanilla)
     check_bool("flag", flag)
-    env, env_params = make_env(env_id)
     if vanilla:
         if noise_std is not None or mode != "last" or check_real("cost", cost).any():
             raise ValueError("vanilla=True takes no cost, mode or noise_std: it never hides a state")
-        return AlwaysMeasured(env, env_params), env_params
+        return wrap(env_id, vanilla=True)
     check_choice("mode", mode, MODES)
     cost = check_real("cost", cost, low=0.0)
     if mode == "noisy":
@@ -49,10 +48,25 @@ def make(
         raise ValueError(f"noise_std is only used with mode='noisy' (mode is {mode!r})")
     else:
         noise_std = 0.0
-    wrapped = ActiveMeasure(env, mode=mode, flag=flag, env_params=env_params)
-    params = MeasureParams(
+    wrapped, env_params = wrap(env_id, mode, flag)
+    return wrapped, measure_params(env_params, cost, noise_std)
+
+
+def wrap(env_id: str, mode: str = "last", flag: bool = True, vanilla: bool = False) -> tuple[Environment, Any]:
+    """The wrapped environment and the *inner* env's params, unchecked (`make` checks its arguments first).
+
+    The trainers call this with a config's static fields and build the params from its traced cost and noise with
+    `measure_params`, so traced values go straight into the params."""
+    env, env_params = make_env(env_id)
+    if vanilla:
+        return AlwaysMeasured(env, env_params), env_params
+    return ActiveMeasure(env, mode=mode, flag=flag, env_params=env_params), env_params
+
+
+def measure_params(env_params: Any, cost: Any, noise_std: Any) -> MeasureParams:
+    """`MeasureParams` around the inner env's params; `cost` and `noise_std` may be traced (float32 arrays)."""
+    return MeasureParams(
         env_params=env_params,
         cost=jnp.asarray(cost, jnp.float32),
         noise_std=jnp.asarray(noise_std, jnp.float32),
     )
-    return wrapped, params

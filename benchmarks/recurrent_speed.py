@@ -56,7 +56,7 @@ def run_case(name: str, configs: int, steps: int, eval_every: int) -> dict[str, 
     config, num_evals = stack_configs(items), items[0].num_evals
     keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
 
-    train = jax.jit(jax.vmap(lambda c, k: run_evals(algo, c, init_run(algo, c, k), num_evals)[1].eval_return))
+    train = jax.jit(jax.vmap(lambda c, k: run_evals(algo, c, init_run(algo, c, k), num_evals)[1].test.costed_return))
     start = time.perf_counter()
     compiled = train.lower(config, keys).compile()
     compile_s = time.perf_counter() - start

@@ -33,7 +33,7 @@ import amjax
 amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
 
 from amjax.agents import stack_configs  # noqa: E402
-from amjax.agents.training import evaluate  # noqa: E402
+from amjax.agents.training import evaluate_greedy  # noqa: E402
 from amjax.sweep.batches import Batch, compiled_programs, plan_batches  # noqa: E402
 from amjax.sweep.devices import config_sharding, sharded_jit, sweep_devices  # noqa: E402
 from amjax.sweep.grid import expand  # noqa: E402
@@ -78,10 +78,8 @@ def probe_batch(batch: Batch, budget: int, probe_steps: int, devices: list) -> d
 
 def _evaluation(algo, config, state):
     """Mean test-episode length of the greedy policy of `state`, as `run_evals` evaluates it."""
-    env, env_params, max_steps = config.make_env()
-    policy = algo.greedy(config, algo.params(state.algo))
     key = jax.random.fold_in(state.key, state.evals_done)
-    return evaluate(env, env_params, max_steps, policy, key, config.eval_episodes).means()["length"]
+    return evaluate_greedy(algo, config, algo.setup(config), algo.params(state.algo), key, config.eval_episodes).length
 
 
 def probe(env: str, agent: str, seeds: int, probe_steps: int) -> list[dict[str, float]]:

@@ -1,28 +1,30 @@
-"""The benchmark's measurement helpers (benchmarks/throughput.py): timing order and overhead arithmetic.
+"""The benchmark's measurement helpers (benchmarks/throughput/): timing order and overhead arithmetic.
 
 The benchmark itself is a script, not a test; these check that what it reports is computed as it says.
 """
 
 from __future__ import annotations
 
-import importlib.util
+import argparse
 import itertools
+import sys
 from pathlib import Path
 
 import pytest
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "throughput.py"
-_spec = importlib.util.spec_from_file_location("throughput", _PATH)
-throughput = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(throughput)
+_ROOT = str(Path(__file__).resolve().parents[1])  # the benchmarks are not installed: import them from the checkout
+if _ROOT not in sys.path:
+    sys.path.insert(0, _ROOT)
+
+from benchmarks.throughput import cases, report, timing  # noqa: E402
 
 
 def test_interleaved_alternates_and_warms_up(monkeypatch):
     calls = []
     clock = itertools.count()
-    monkeypatch.setattr(throughput.time, "perf_counter", lambda: float(next(clock)))
+    monkeypatch.setattr(timing.time, "perf_counter", lambda: float(next(clock)))
     runs = {False: lambda: calls.append("active"), True: lambda: calls.append("vanilla")}
-    times = throughput._interleaved(runs, rounds=3)
+    times = timing.interleaved(runs, rounds=3)
     # One untimed run of each, then a b | b a | a b.
     assert calls == ["active", "vanilla", "active", "vanilla", "vanilla", "active", "active", "vanilla"]
     assert len(times[False]) == len(times[True]) == 3
@@ -30,28 +32,28 @@ def test_interleaved_alternates_and_warms_up(monkeypatch):
 
 def test_overhead_figures():
     active, vanilla = [1.10, 1.30, 1.05], [1.00, 1.20, 1.00]
-    fig = throughput._overhead_figures(active, vanilla)
+    fig = timing.overhead_figures(active, vanilla)
     assert fig["min"] == pytest.approx(1.05 / 1.00 - 1)
     assert fig["median"] == pytest.approx(1.10 / 1.00 - 1)
     assert fig["rounds"] == pytest.approx([0.10, 1.30 / 1.20 - 1, 0.05])
 
 
 def test_overhead_cases_are_training_only():
-    args = throughput.argparse.Namespace(
+    args = argparse.Namespace(
         quick=False, steps=None, evals=5, eval_episodes=10, no_reference_eval=False, target_chunks=10,
         sb3_threads=1, repeats=2, cores=None, agents=["ppo", "dqn"], sizes=[], impls=[], sb3=False,
         overhead=[256], overhead_rounds=6, buffer=None, buffer_scan=[],
     )
-    cases = throughput.build_cases(args)
+    built = cases.build_cases(args)
     expected = [("overhead", "ppo", 256), ("overhead", "dqn", 256)]
-    assert [(c["impl"], c["agent"], c["configs"]) for c in cases] == expected
-    for case in cases:
+    assert [(c["impl"], c["agent"], c["configs"]) for c in built] == expected
+    for case in built:
         assert (case["evals"], case["eval_episodes"], case["repeats"]) == (1, 1, 6)
-        config = throughput._agent_config(case, 0.1).validate()
+        config = cases.agent_config(case, 0.1).validate()
         assert config.num_evals == 1 and config.total_timesteps == case["steps"]
 
 
 def test_table_without_rows():
     # An overhead-only run (`--impls '' --overhead 256`) has no table rows: the header still prints.
-    lines = throughput.format_text(throughput.table_rows([{"impl": "overhead"}])).splitlines()
+    lines = report.format_text(report.table_rows([{"impl": "overhead"}])).splitlines()
     assert len(lines) == 2 and lines[0].split()[0] == "implementation"

@@ -7,7 +7,18 @@ from amjax.agents.ppo import PPO, PPOConfig
 from amjax.agents.ppo_rnn import PPO_RNN, PPORNNConfig
 from amjax.agents.registry import ALGORITHMS, agent_of, algorithm
 from amjax.agents.saved import PolicyFileError, SavedPolicy, load_policy, save_policy
-from amjax.agents.training import Algorithm, EvalRow, RunState, evaluate, init_run, rescore, run_evals
+from amjax.agents.setup import Setup, training_env
+from amjax.agents.training import (
+    Algorithm,
+    EvalRow,
+    FinishedEpisodes,
+    RunState,
+    evaluate,
+    evaluate_greedy,
+    init_run,
+    rescore,
+    run_evals,
+)
 
 __all__ = [
     "ALGORITHMS",
@@ -20,19 +31,23 @@ __all__ = [
     "DQNConfig",
     "DRQNConfig",
     "EvalRow",
+    "FinishedEpisodes",
     "PPOConfig",
     "PPORNNConfig",
     "PolicyFileError",
     "RunState",
     "SavedPolicy",
+    "Setup",
     "agent_of",
     "algorithm",
     "evaluate",
+    "evaluate_greedy",
     "init_run",
     "load_policy",
     "rescore",
     "run_evals",
     "save_policy",
     "stack_configs",
+    "training_env",
     "unstack_config",
 ]

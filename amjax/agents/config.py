@@ -8,7 +8,7 @@ same compiled program over them (cost, learning rate, gamma, epsilons, ...).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Self
 
 import jax
 import jax.numpy as jnp
@@ -16,10 +16,8 @@ import numpy as np
 from flax import struct
 
 from amjax.envs.registry import make_env
-from amjax.factory import make
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 from amjax.wrappers.active_measure import MODES
-from amjax.wrappers.episode_stats import EpisodeStats
 
 _BOUNDS = {
     "positive": {"low": 0.0, "low_inclusive": False},
@@ -101,8 +99,10 @@ class AgentConfig:
 
     # -- checks -----------------------------------------------------------------------------------
 
-    def validate(self) -> AgentConfig:
-        """Check every field on concrete values (before compiling); returns self."""
+    def validate(self) -> Self:
+        """Check every field on concrete values (before compiling); returns self. The agent's own fields
+        (`check_fields`) are checked first, then the environment, the traced fields and the schedule."""
+        self.check_fields()
         make_env(self.env_id)  # raises on an unknown id, listing the known ones
         check_choice("mode", self.mode, MODES)
         check_bool("flag", self.flag)
@@ -137,6 +137,9 @@ class AgentConfig:
             )
         return self
 
+    def check_fields(self) -> None:
+        """Check the fields an agent adds (overridden by each config class; call `super().check_fields()`)."""
+
     # -- derived quantities (static) ---------------------------------------------------------------
 
     def steps_per_update(self) -> int:
@@ -150,26 +153,6 @@ class AgentConfig:
     @property
     def num_evals(self) -> int:
         return self.total_timesteps // self.eval_every
-
-    # -- environment ---------------------------------------------------------------------------------
-
-    def make_env(self) -> tuple[Any, Any, int]:
-        """The training env (with episode statistics), its params carrying this config's traced cost and noise,
-        and the episode step limit (for evaluation)."""
-        noisy = self.mode == "noisy"
-        if self.vanilla:
-            env, params = make(self.env_id, vanilla=True)
-            max_steps = params.max_steps_in_episode
-        else:
-            env, params = make(
-                self.env_id, mode=self.mode, flag=self.flag, noise_std=0.0 if noisy else None
-            )
-            params = params.replace(
-                cost=jnp.asarray(self.cost, jnp.float32),
-                noise_std=jnp.asarray(self.noise_std, jnp.float32),
-            )
-            max_steps = params.env_params.max_steps_in_episode
-        return EpisodeStats(env), params, int(max_steps)
 
 
 def stack_configs(configs: list[AgentConfig]) -> AgentConfig:

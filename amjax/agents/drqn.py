@@ -18,80 +18,71 @@ the plain stored-state variant.
 
 Targets: for every step t of the trained part, the bootstrap Q-values come from one more recurrent step on the
 pre-reset next observation from the carry after step t (no reset), so truncated episodes bootstrap correctly and
-the values never mix episodes. n-step returns (`dqn.n_step_transitions`) stop at an episode's end and at the
-sequence's end, and use double-Q targets (`dqn.td_targets`) from a target network.
+the values never mix episodes. n-step returns (`q_learning.n_step_transitions`) stop at an episode's end and at the
+sequence's end, and use double-Q targets (`q_learning.td_targets`) from a target network.
 
 The learner is the cost (a GRU unroll of burn_in + seq_len steps for the online and the target network per sampled
-sequence), so the defaults sample one sequence per env step (4 x 32 per 16 envs x 8 steps) rather than four. The
-tuning runs behind the defaults and the speed measurements are in docs/recurrent.md.
+sequence); the runs behind the defaults and the speed measurements are in docs/recurrent.md.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
 
-from amjax.agents.config import AgentConfig, static
-from amjax.agents.dqn import DQNConfig, epsilon, make_optimizer, n_step_transitions, td_targets, transition_arrays
+from amjax.agents.config import static
 from amjax.agents.networks import CELLS, RecurrentQNetwork, zero_carry
+from amjax.agents.q_learning import (
+    QLearningConfig,
+    epsilon,
+    epsilon_greedy,
+    learn_or_wait,
+    make_optimizer,
+    n_step_transitions,
+    td_targets,
+    transition_arrays,
+    update_target,
+)
 from amjax.agents.replay import ReplayBuffer, sequence_add, sequence_init, sequence_sample, sequence_windows
-from amjax.agents.rollout import EnvBatch, reset_envs, rollout
-from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, make_train
+from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
+from amjax.agents.setup import Setup
+from amjax.agents.training import Algorithm, FinishedEpisodes, UpdateStats, make_train
 from amjax.validation import check_choice, check_positive_int
 
 
 @struct.dataclass
-class DRQNConfig(AgentConfig):
+class DRQNConfig(QLearningConfig):
+    """`QLearningConfig`'s fields (`buffer_size` and `batch_size` count sequences, `hidden` is the MLP under the
+    recurrent cell) with DRQN's defaults, plus the sequence and the recurrent core."""
+
     num_envs: int = static(4)
     buffer_size: int = static(2_000)  # sequences (each burn_in + seq_len steps): the last 16k env steps
-    batch_size: int = static(32)  # sequences per gradient step
+    batch_size: int = static(32)
+    train_freq: int = static(8)  # also the stride between an env's stored sequences
+    gradient_steps: int = static(4)  # 4 x 32 sampled sequences per 128 env steps (docs/recurrent.md)
+    hidden: tuple[int, ...] = static((64,))
+    learning_rate: float = 2e-3
+    exploration_fraction: float = 0.2
     seq_len: int = static(16)  # trained steps per sequence
     burn_in: int = static(8)  # steps unrolled from the stored hidden state before the trained ones
-    learning_starts: int = static(1_000)  # env steps taken before the first gradient step
-    train_freq: int = static(8)  # steps per env between gradient phases (= the stride between stored sequences)
-    gradient_steps: int = static(4)  # 4 x 32 sampled sequences per 128 env steps (docs/recurrent.md)
-    target_update_interval: int = static(2_000)  # env steps between target updates (250 gradient steps)
-    hidden: Sequence[int] = static((64,))  # MLP under the recurrent cell
     rnn_size: int = static(64)
     cell: str = static("gru")  # "gru" or "lstm"
-    activation: str = static("relu")
-    dueling: bool = static(True)
-    double_q: bool = static(True)
-    n_step: int = static(10)  # multi-step returns inside each sequence (1 = one-step); as DQN
-    anneal_lr: bool = static(True)  # linear decay of the learning rate to 0 over training
-    learning_rate: float = 2e-3
-    gamma: float = 0.99
-    tau: float = 1.0  # target update rate (1 = hard copy)
-    epsilon_start: float = 1.0
-    epsilon_end: float = 0.05
-    exploration_fraction: float = 0.2  # fraction of training over which epsilon decays linearly
-    max_grad_norm: float = 10.0
-
-    TRACED_BOUNDS: ClassVar[dict[str, str]] = DQNConfig.TRACED_BOUNDS
 
     @property
     def sequence_length(self) -> int:
         """Steps per stored sequence."""
         return self.burn_in + self.seq_len
 
-    def steps_per_update(self) -> int:
-        return self.num_envs * self.train_freq
-
-    def validate(self) -> DRQNConfig:
-        for name in (
-            "num_envs", "buffer_size", "batch_size", "seq_len", "train_freq", "gradient_steps",
-            "target_update_interval", "rnn_size", "n_step",
-        ):
+    def check_fields(self) -> None:
+        for name in ("seq_len", "rnn_size"):
             check_positive_int(name, getattr(self, name))
         check_positive_int("burn_in", self.burn_in, minimum=0)
-        check_positive_int("learning_starts", self.learning_starts, minimum=0)
-        check_choice("activation", self.activation, ("tanh", "relu", "elu"))
         check_choice("cell", self.cell, CELLS)
+        super().check_fields()
         if self.train_freq > self.sequence_length:
             raise ValueError(
                 f"train_freq={self.train_freq} must be at most burn_in + seq_len = {self.sequence_length} "
@@ -101,7 +92,6 @@ class DRQNConfig(AgentConfig):
             raise ValueError(
                 f"buffer_size={self.buffer_size} (sequences) must be a multiple of num_envs={self.num_envs}"
             )
-        return super().validate()
 
 
 @struct.dataclass
@@ -117,26 +107,19 @@ class DRQNState:
     env_steps: jax.Array
 
 
-def network(config: DRQNConfig) -> RecurrentQNetwork:
-    env, env_params, _ = config.make_env()
+def network(config: DRQNConfig, num_actions: int) -> RecurrentQNetwork:
     return RecurrentQNetwork(
-        env.action_space(env_params).n, tuple(config.hidden), config.rnn_size, config.cell, config.activation,
-        config.dueling,
+        num_actions, tuple(config.hidden), config.rnn_size, config.cell, config.activation, config.dueling
     )
 
 
-def _policy(config: DRQNConfig, params: Any, eps: jax.Array):
+def _policy(setup: Setup, params: Any, eps: jax.Array):
     """The epsilon-greedy act function; its extras (the hidden state before the step and the `first` flag) are
     what sequence storage needs."""
-    net = network(config)
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        new_carry, q = net.apply(params, carry, batch.obs, batch.first)
-        explore_key, random_key = jax.random.split(key)
-        greedy_action = jnp.argmax(q, -1)
-        random_action = jax.random.randint(random_key, greedy_action.shape, 0, net.num_actions)
-        explore = jax.random.uniform(explore_key, greedy_action.shape) < eps
-        return jnp.where(explore, random_action, greedy_action), new_carry, (carry, batch.first)
+        new_carry, q = setup.network.apply(params, carry, batch.obs, batch.first)
+        return epsilon_greedy(q, key, eps), new_carry, (carry, batch.first)
 
     return act
 
@@ -145,16 +128,16 @@ def _steps(transitions: Any, first: jax.Array) -> dict[str, jax.Array]:
     return {**transition_arrays(transitions), "first": first}
 
 
-def init(config: DRQNConfig, key: jax.Array) -> DRQNState:
-    env, env_params, _ = config.make_env()
+def init(config: DRQNConfig, setup: Setup, key: jax.Array) -> DRQNState:
+    env, env_params = setup.env, setup.env_params
     net_key, env_key, warmup_key, key = jax.random.split(key, 4)
     envs = reset_envs(env, env_params, env_key, config.num_envs)
     carry = zero_carry(config.cell, config.rnn_size, (config.num_envs,))
-    params = network(config).init(net_key, carry, envs.obs, envs.first)
+    params = setup.network.init(net_key, carry, envs.obs, envs.first)
 
     # The first burn_in + seq_len - train_freq steps of each env, waiting to complete their sequence: random
     # actions, with the initial network's hidden states (not counted as training steps).
-    act = _policy(config, params, jnp.float32(1.0))
+    act = _policy(setup, params, jnp.float32(1.0))
     warmup = config.sequence_length - config.train_freq
     envs, carry, transitions, (carries, first) = rollout(env, env_params, envs, carry, act, warmup_key, warmup)
     obs = envs.obs[0]
@@ -168,33 +151,34 @@ def init(config: DRQNConfig, key: jax.Array) -> DRQNState:
         envs=envs,
         carry=carry,
         pending={"steps": _steps(transitions, first), "carry": carries},
-        key=key,
+        key=key_bits(key),
         env_steps=jnp.int32(0),
     )
 
 
-def q_values(config: DRQNConfig, params: Any, steps: dict[str, jax.Array], start: Any) -> tuple[jax.Array, jax.Array]:
+def q_values(
+    config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], start: Any
+) -> tuple[jax.Array, jax.Array]:
     """Unroll a batch of stored sequences (time-major [burn_in + seq_len, batch]) from their stored start states.
 
     The first `burn_in` steps only warm the hidden state up (no gradient). For the trained steps returns the
     Q-values [seq_len, batch, A] and the bootstrap Q-values of each step's pre-reset next observation."""
-    return _trained_q_values(config, params, steps, _burn_in(config, params, steps, start))
+    return _trained_q_values(config, net, params, steps, _burn_in(config, net, params, steps, start))
 
 
-def _burn_in(config: DRQNConfig, params: Any, steps: dict[str, jax.Array], start: Any) -> Any:
+def _burn_in(config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], start: Any) -> Any:
     """The hidden state after the burn-in steps (no gradient); `start` if there are none."""
     if not config.burn_in:
         return start
-    carries, _ = network(config).apply(
+    carries, _ = net.apply(
         params, start, steps["obs"][: config.burn_in], steps["first"][: config.burn_in], method="unroll"
     )
     return jax.lax.stop_gradient(jax.tree.map(lambda c: c[-1], carries))
 
 
 def _trained_q_values(
-    config: DRQNConfig, params: Any, steps: dict[str, jax.Array], carry: Any
+    config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], carry: Any
 ) -> tuple[jax.Array, jax.Array]:
-    net = network(config)
     trained = jax.tree.map(lambda x: x[config.burn_in :], steps)
     carries, q = net.apply(params, carry, trained["obs"], trained["first"], method="unroll")
     _, q_next = net.apply(params, carries, trained["next_obs"], jnp.zeros_like(trained["first"]))
@@ -225,15 +209,18 @@ def sequence_targets(
     return items["reward"] + items["discount"] * items["next_obs"][..., 0]
 
 
-def loss(config: DRQNConfig, params: Any, target_params: Any, steps: dict[str, jax.Array], start: Any) -> jax.Array:
+def loss(
+    config: DRQNConfig, net: RecurrentQNetwork, params: Any, target_params: Any, steps: dict[str, jax.Array],
+    start: Any,
+) -> jax.Array:
     """Mean Huber TD error over the trained steps of a batch of sequences.
 
     The online and target networks' burn-ins (neither takes a gradient) run as one vmapped unroll over the two
     parameter sets."""
     both = jax.tree.map(lambda p, t: jnp.stack([jax.lax.stop_gradient(p), t]), params, target_params)
-    online_carry, target_carry = _unstack(jax.vmap(_burn_in, (None, 0, None, None))(config, both, steps, start))
-    q, q_next_online = _trained_q_values(config, params, steps, online_carry)
-    _, q_next_target = _trained_q_values(config, target_params, steps, target_carry)
+    online_carry, target_carry = _unstack(jax.vmap(lambda p: _burn_in(config, net, p, steps, start))(both))
+    q, q_next_online = _trained_q_values(config, net, params, steps, online_carry)
+    _, q_next_target = _trained_q_values(config, net, target_params, steps, target_carry)
     targets = sequence_targets(config, steps, q_next_online, q_next_target)
     action = steps["action"][config.burn_in :]
     q_taken = jnp.take_along_axis(q, action[..., None], -1)[..., 0]
@@ -244,15 +231,13 @@ def _unstack(tree: Any) -> tuple[Any, Any]:
     return jax.tree.map(lambda x: x[0], tree), jax.tree.map(lambda x: x[1], tree)
 
 
-def update(config: DRQNConfig, state: DRQNState) -> tuple[DRQNState, UpdateStats]:
-    env, env_params, _ = config.make_env()
-    optimizer = make_optimizer(config)
-    rollout_key, learn_key, key = jax.random.split(state.key, 3)
+def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNState, UpdateStats]:
+    rollout_key, learn_key, key = jax.random.split(fast_key(state.key), 3)
 
     # 1. Act epsilon-greedily for train_freq steps; store one sequence per env.
-    act = _policy(config, state.params, epsilon(config, state.env_steps))
+    act = _policy(setup, state.params, epsilon(config, state.env_steps))
     envs, carry, transitions, (carries, first) = rollout(
-        env, env_params, state.envs, state.carry, act, rollout_key, config.train_freq
+        setup.env, setup.env_params, state.envs, state.carry, act, rollout_key, config.train_freq
     )
     window, pending = sequence_windows(
         state.pending, {"steps": _steps(transitions, first), "carry": carries}, config.train_freq
@@ -260,44 +245,51 @@ def update(config: DRQNConfig, state: DRQNState) -> tuple[DRQNState, UpdateStats
     buffer = sequence_add(state.buffer, window["steps"], jax.tree.map(lambda c: c[0], window["carry"]))
     env_steps = state.env_steps + config.steps_per_update()
 
-    # 2. Gradient steps on sampled sequences, once learning has started.
-    def gradient_step(carry, key):
-        params, opt_state = carry
-        steps, start = sequence_sample(buffer, key, config.batch_size)
-        value, grads = jax.value_and_grad(loss, argnums=1)(config, params, state.target_params, steps, start)
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        return (optax.apply_updates(params, updates), opt_state), value
+    # 2. Gradient steps on sampled sequences, once learning has started (traced values are operands: see
+    #    `batching.uniform_cond`).
+    def learn(params, opt_state, config, target_params, buffer, key_data):
+        optimizer = make_optimizer(config)
 
-    (params, opt_state), losses = jax.lax.scan(
-        gradient_step, (state.params, state.opt_state), jax.random.split(learn_key, config.gradient_steps)
-    )
+        def gradient_step(carry, key):
+            params, opt_state = carry
+            steps, start = sequence_sample(buffer, key, config.batch_size)
+            value, grads = jax.value_and_grad(loss, argnums=2)(config, setup.network, params, target_params, steps,
+                                                                start)
+            updates, opt_state = optimizer.update(grads, opt_state, params)
+            return (optax.apply_updates(params, updates), opt_state), value
+
+        (params, opt_state), losses = jax.lax.scan(
+            gradient_step, (params, opt_state), jax.random.split(fast_key(key_data), config.gradient_steps)
+        )
+        return params, opt_state, losses.mean()
+
     learning = env_steps >= config.learning_starts
-    params, opt_state = jax.tree.map(
-        lambda new, old: jnp.where(learning, new, old), (params, opt_state), (state.params, state.opt_state)
+    params, opt_state, mean_loss = learn_or_wait(
+        learning, learn, state.params, state.opt_state, config, state.target_params, buffer, key_bits(learn_key)
     )
 
     # 3. Target network: blend with rate tau each time target_update_interval env steps pass.
-    sync = learning & (
-        env_steps // config.target_update_interval != state.env_steps // config.target_update_interval
-    )
-    target_params = optax.incremental_update(params, state.target_params, jnp.where(sync, config.tau, 0.0))
+    target_params = update_target(config, learning, state.env_steps, env_steps, params, state.target_params)
 
-    new_state = DRQNState(params, target_params, opt_state, buffer, envs, carry, pending, key, env_steps)
-    return new_state, UpdateStats(jnp.where(learning, losses.mean(), 0.0), EpisodeSums.of(transitions))
+    new_state = DRQNState(params, target_params, opt_state, buffer, envs, carry, pending, key_bits(key), env_steps)
+    return new_state, UpdateStats(mean_loss, FinishedEpisodes.of(transitions))
 
 
-def greedy(config: DRQNConfig, params: Any):
-    """The greedy policy and a zero hidden state for `eval_episodes` test envs."""
-    act = _policy(config, params, jnp.float32(0.0))
+def greedy(config: DRQNConfig, setup: Setup, params: Any, num_envs: int):
+    """The greedy policy and a zero hidden state for `num_envs` test envs."""
+    act = _policy(setup, params, jnp.float32(0.0))
 
     def greedy_act(batch: EnvBatch, carry: Any, key: jax.Array):
         action, carry, _ = act(batch, carry, key)
         return action, carry, None
 
-    return greedy_act, zero_carry(config.cell, config.rnn_size, (config.eval_episodes,))
+    return greedy_act, zero_carry(config.cell, config.rnn_size, (num_envs,))
 
 
-DRQN = Algorithm("drqn", DRQNConfig, init, update, greedy, params=lambda state: state.params)
+DRQN = Algorithm("drqn", DRQNConfig, network, init, update, greedy, params=lambda state: state.params)
 train = make_train(DRQN)
 
-__all__ = ["DRQN", "DRQNConfig", "DRQNState", "greedy", "loss", "q_values", "sequence_targets", "train"]
+__all__ = [
+    "DRQN", "DRQNConfig", "DRQNState", "greedy", "init", "loss", "network", "q_values", "sequence_targets", "train",
+    "update",
+]

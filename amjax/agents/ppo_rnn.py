@@ -1,60 +1,60 @@
-"""Recurrent PPO: PPO (ppo.py) with a GRU or LSTM core shared by the policy and value heads.
+"""Recurrent PPO: PPO (ppo.py's sibling) with a GRU or LSTM core shared by the policy and value heads.
 
 The hidden state is the agent carry of the shared rollout, carried from one update's rollout into the next and
 reset to zeros at every episode's first step (`EnvBatch.first`, also stored with the rollout).
 
 One `update`: roll out `num_steps` steps of `num_envs` envs, keeping the hidden state each env started the rollout
-with -> GAE advantages (`ppo.gae`; the bootstrap value of each step's pre-reset next observation is one more
+with -> GAE advantages (`ppo_core.gae`; the bootstrap value of each step's pre-reset next observation is one more
 recurrent step from the carry after that step, so truncated episodes bootstrap correctly) -> `update_epochs`
 epochs of `num_minibatches` minibatches of *whole env sequences*: each minibatch re-unrolls its envs' stored
 [num_steps] sequences from their initial hidden states with the current parameters (resetting at the stored
-episode starts) and takes a step on the clipped objective (`ppo.clipped_loss`).
+episode starts) and takes a step on the clipped objective (`ppo_core.clipped_loss`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from amjax.agents.config import static
+from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import CELLS, RecurrentActorCritic, zero_carry
 from amjax.agents.optim import minibatch_step
-from amjax.agents.ppo import PPOConfig, clipped_loss, make_optimizer, rollout_advantages
-from amjax.agents.rollout import EnvBatch, reset_envs, rollout
-from amjax.agents.training import Algorithm, EpisodeSums, UpdateStats, make_train
+from amjax.agents.ppo_core import PPOBaseConfig, clipped_loss, make_optimizer, rollout_advantages, shuffle
+from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
+from amjax.agents.setup import Setup
+from amjax.agents.training import Algorithm, FinishedEpisodes, UpdateStats, make_train
 from amjax.validation import check_choice, check_positive_int
 
 
 @struct.dataclass
-class PPORNNConfig(PPOConfig):
-    """PPOConfig's fields (traced ones and their bounds included) plus the recurrent core's; `hidden` is the MLP
-    under the cell. The core is always shared by the policy and value heads (`shared_network` must be True)."""
+class PPORNNConfig(PPOBaseConfig):
+    """`PPOBaseConfig`'s fields plus the recurrent core's; `hidden` is the MLP under the cell. The core is shared by
+    the policy and value heads."""
 
-    hidden: Sequence[int] = static((64,))  # MLP under the recurrent cell
-    shared_network: bool = static(True)  # one recurrent core for both heads (the only variant)
+    hidden: tuple[int, ...] = static((64,))
     rnn_size: int = static(64)
     cell: str = static("gru")  # "gru" or "lstm"
 
-    def validate(self) -> PPORNNConfig:
+    @classmethod
+    def from_dict(cls, fields: dict[str, Any]) -> AgentConfig:
+        """As `AgentConfig.from_dict`; files written before the two PPO configs became siblings also name
+        `shared_network` (always True then), which is dropped."""
+        if fields.get("shared_network", True) is True:
+            fields = {k: v for k, v in fields.items() if k != "shared_network"}
+        return super().from_dict(fields)
+
+    def check_fields(self) -> None:
         check_positive_int("rnn_size", self.rnn_size)
         check_choice("cell", self.cell, CELLS)
-        if self.shared_network is not True:
-            raise ValueError(
-                f"shared_network={self.shared_network!r}: PPO-RNN's recurrent core is shared by the policy and value "
-                "heads; allowed values: True"
-            )
-        check_positive_int("num_envs", self.num_envs)
-        check_positive_int("num_minibatches", self.num_minibatches)
+        super().check_fields()
         if self.num_envs % self.num_minibatches:
             raise ValueError(
                 f"num_minibatches={self.num_minibatches} must divide num_envs={self.num_envs} "
                 "(minibatches are whole env sequences)"
             )
-        return super().validate()
 
 
 @struct.dataclass
@@ -67,55 +67,49 @@ class PPORNNState:
     updates: jax.Array
 
 
-def network(config: PPORNNConfig) -> RecurrentActorCritic:
-    env, env_params, _ = config.make_env()
-    return RecurrentActorCritic(
-        env.action_space(env_params).n, tuple(config.hidden), config.rnn_size, config.cell, config.activation
-    )
+def network(config: PPORNNConfig, num_actions: int) -> RecurrentActorCritic:
+    return RecurrentActorCritic(num_actions, tuple(config.hidden), config.rnn_size, config.cell, config.activation)
 
 
-def init(config: PPORNNConfig, key: jax.Array) -> PPORNNState:
-    env, env_params, _ = config.make_env()
+def init(config: PPORNNConfig, setup: Setup, key: jax.Array) -> PPORNNState:
     net_key, env_key, key = jax.random.split(key, 3)
-    envs = reset_envs(env, env_params, env_key, config.num_envs)
+    envs = reset_envs(setup.env, setup.env_params, env_key, config.num_envs)
     carry = zero_carry(config.cell, config.rnn_size, (config.num_envs,))
-    params = network(config).init(net_key, carry, envs.obs, envs.first)
-    return PPORNNState(params, make_optimizer(config).init(params), envs, carry, key, jnp.int32(0))
+    params = setup.network.init(net_key, carry, envs.obs, envs.first)
+    return PPORNNState(params, make_optimizer(config).init(params), envs, carry, key_bits(key), jnp.int32(0))
 
 
 def collect(
-    config: PPORNNConfig, params: Any, envs: EnvBatch, carry: Any, key: jax.Array
+    config: PPORNNConfig, setup: Setup, params: Any, envs: EnvBatch, carry: Any, key: jax.Array
 ) -> tuple[EnvBatch, Any, Any, tuple[jax.Array, ...]]:
     """Roll out `num_steps` steps with the stochastic policy. Returns the final envs and carry, the transitions
     [T, E] and per step (log-probability, value, `first` flag, carry after the step)."""
-    env, env_params, _ = config.make_env()
-    net = network(config)
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        carry, (logits, value) = net.apply(params, carry, batch.obs, batch.first)
+        carry, (logits, value) = setup.network.apply(params, carry, batch.obs, batch.first)
         action = jax.random.categorical(key, logits)
         log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], -1)[:, 0]
         return action, carry, (log_prob, value, batch.first, carry)
 
-    return rollout(env, env_params, envs, carry, act, key, config.num_steps)
+    return rollout(setup.env, setup.env_params, envs, carry, act, key, config.num_steps)
 
 
 def unroll_sequences(
-    config: PPORNNConfig, params: Any, start: Any, obs: jax.Array, first: jax.Array
+    net: RecurrentActorCritic, params: Any, start: Any, obs: jax.Array, first: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
     """Policy logits and values [T, E, ...] of time-major sequences re-unrolled from their initial carries."""
-    _, (logits, value) = network(config).apply(params, start, obs, first, method="unroll")
+    _, (logits, value) = net.apply(params, start, obs, first, method="unroll")
     return logits, value
 
 
-def update(config: PPORNNConfig, state: PPORNNState) -> tuple[PPORNNState, UpdateStats]:
-    net = network(config)
+def update(config: PPORNNConfig, setup: Setup, state: PPORNNState) -> tuple[PPORNNState, UpdateStats]:
+    net = setup.network
     optimizer = make_optimizer(config)
-    rollout_key, epoch_key, key = jax.random.split(state.key, 3)
+    rollout_key, epoch_key, key = jax.random.split(fast_key(state.key), 3)
 
     # 1. Collect a rollout with the current stochastic policy, keeping each step's carry and `first` flag.
     envs, carry, transitions, (log_probs, values, first, carries) = collect(
-        config, state.params, state.envs, state.carry, rollout_key
+        config, setup, state.params, state.envs, state.carry, rollout_key
     )
 
     # 2. Advantages: the value of every pre-reset next observation, one recurrent step on from its carry.
@@ -127,12 +121,12 @@ def update(config: PPORNNConfig, state: PPORNNState) -> tuple[PPORNNState, Updat
 
     def loss_fn(params, minibatch):
         start, (obs, first, *rest) = minibatch
-        return clipped_loss(config, *unroll_sequences(config, params, start, obs, first), *rest)
+        return clipped_loss(config, *unroll_sequences(net, params, start, obs, first), *rest)
 
     step = minibatch_step(optimizer, loss_fn)
 
     def epoch(carry, key):
-        order = jax.random.permutation(key, config.num_envs).reshape(config.num_minibatches, -1)  # [M, E / M]
+        order = shuffle(key, config.num_envs).reshape(config.num_minibatches, -1)  # [M, E / M]
         starts = jax.tree.map(lambda c: c[order], state.carry)
         minibatches = jax.tree.map(lambda x: jnp.moveaxis(x[:, order], 1, 0), sequences)  # [M, T, E / M, ...]
         return jax.lax.scan(step, carry, (starts, minibatches))
@@ -140,22 +134,24 @@ def update(config: PPORNNConfig, state: PPORNNState) -> tuple[PPORNNState, Updat
     (params, opt_state), losses = jax.lax.scan(
         epoch, (state.params, state.opt_state), jax.random.split(epoch_key, config.update_epochs)
     )
-    new_state = PPORNNState(params, opt_state, envs, carry, key, state.updates + 1)
-    return new_state, UpdateStats(losses.mean(), EpisodeSums.of(transitions))
+    new_state = PPORNNState(params, opt_state, envs, carry, key_bits(key), state.updates + 1)
+    return new_state, UpdateStats(losses.mean(), FinishedEpisodes.of(transitions))
 
 
-def greedy(config: PPORNNConfig, params: Any):
-    """The most probable action, carrying the hidden state; a zero hidden state for `eval_episodes` test envs."""
-    net = network(config)
+def greedy(config: PPORNNConfig, setup: Setup, params: Any, num_envs: int):
+    """The most probable action, carrying the hidden state; a zero hidden state for `num_envs` test envs."""
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        carry, (logits, _) = net.apply(params, carry, batch.obs, batch.first)
+        carry, (logits, _) = setup.network.apply(params, carry, batch.obs, batch.first)
         return jnp.argmax(logits, -1), carry, None
 
-    return act, zero_carry(config.cell, config.rnn_size, (config.eval_episodes,))
+    return act, zero_carry(config.cell, config.rnn_size, (num_envs,))
 
 
-PPO_RNN = Algorithm("ppo-rnn", PPORNNConfig, init, update, greedy, params=lambda state: state.params)
+PPO_RNN = Algorithm("ppo-rnn", PPORNNConfig, network, init, update, greedy, params=lambda state: state.params)
 train = make_train(PPO_RNN)
 
-__all__ = ["PPO_RNN", "PPORNNConfig", "PPORNNState", "collect", "greedy", "network", "train", "unroll_sequences"]
+__all__ = [
+    "PPO_RNN", "PPORNNConfig", "PPORNNState", "collect", "greedy", "init", "network", "train", "unroll_sequences",
+    "update",
+]

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from amjax.wrappers.episode_stats import EpisodeTotals
+from amjax.wrappers.episode_stats import EpisodeMetrics
 
 # The trainers draw their randomness with Philox 4x32 (Random123): on CPU, jaxlib lowers the default Threefry as a
 # rolled loop (a while loop of 5 rounds per split/draw), which dominated the cost of stepping small batches of
@@ -53,7 +53,7 @@ class Transition:
     terminated: jax.Array
     done: jax.Array
     measured: jax.Array
-    episode: EpisodeTotals  # totals of the episode that ended here (valid where episode_done)
+    episode: EpisodeMetrics  # totals of the episode that ended here (valid where episode_done)
     episode_done: jax.Array
 
 

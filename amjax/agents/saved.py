@@ -9,6 +9,7 @@ config_id, best costed return and the env step it was reached at). A sweep write
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from functools import partial
@@ -23,7 +24,7 @@ from flax import serialization
 from amjax.agents.config import AgentConfig
 from amjax.agents.registry import agent_of, algorithm
 from amjax.agents.rollout import EnvBatch
-from amjax.agents.training import Policy, evaluate
+from amjax.agents.training import Policy, evaluate_greedy
 from amjax.files import atomic_write
 
 FORMAT = "amjax-policy"
@@ -37,7 +38,7 @@ class PolicyFileError(ValueError):
 def params_template(agent: str, config: AgentConfig) -> Any:
     """Shapes and dtypes of the network parameters `config` builds (no arrays are allocated)."""
     algo = algorithm(agent)
-    return jax.eval_shape(lambda key: algo.params(algo.init(config, key)), jax.random.key(0))
+    return jax.eval_shape(lambda key: algo.params(algo.init(config, algo.setup(config), key)), jax.random.key(0))
 
 
 @dataclass(frozen=True)
@@ -51,15 +52,15 @@ class SavedPolicy:
 
     def policy(self, num_envs: int = 1) -> Policy:
         """The greedy `(act, carry)` for a batch of `num_envs` envs (recurrent carries are sized to it)."""
-        config = self.config.replace(eval_episodes=int(num_envs))
-        return algorithm(self.agent).greedy(config, self.params)
+        algo = algorithm(self.agent)
+        return algo.greedy(self.config, algo.setup(self.config), self.params, int(num_envs))
 
     def evaluate(self, key: jax.Array, num_episodes: int = 10, **changes: Any) -> dict[str, float]:
         """Mean costed return, raw return, length and measurements over `num_episodes` greedy test episodes on
         the config's env; `changes` edit the config first (e.g. `cost=0.3` to score it at another cost)."""
         config = self.config.replace(**changes).validate() if changes else self.config
-        sums = _evaluate(self.agent, config, self.params, key, int(num_episodes))
-        return {name: float(value) for name, value in sums.means().items()}
+        means = _evaluate(self.agent, config, self.params, key, int(num_episodes))
+        return {name: float(value) for name, value in dataclasses.asdict(means).items()}
 
     def actor(self) -> Actor:
         """A stateful one-env actor for NumPy loops (e.g. a Gymnasium env from `amjax.wrappers.gymnasium`)."""
@@ -68,9 +69,8 @@ class SavedPolicy:
 
 @partial(jax.jit, static_argnames=("agent", "num_episodes"))
 def _evaluate(agent: str, config: AgentConfig, params: Any, key: jax.Array, num_episodes: int):
-    env, env_params, max_steps = config.make_env()
-    greedy = algorithm(agent).greedy(config.replace(eval_episodes=num_episodes), params)
-    return evaluate(env, env_params, max_steps, greedy, key, num_episodes)
+    algo = algorithm(agent)
+    return evaluate_greedy(algo, config, algo.setup(config), params, key, num_episodes)
 
 
 class Actor:

@@ -1,10 +1,12 @@
 """The training driver every algorithm shares: updates -> periodic greedy evaluation -> reduced metrics.
 
-An algorithm supplies `init(config, key)`, `update(config, state)` (one iteration: collect + learn), `params(state)`
-(its network parameters) and `greedy(config, params)` (its evaluation policy). The driver scans `updates_per_eval`
-updates, evaluates `eval_episodes` test episodes, and emits one small `EvalRow` per evaluation: memory grows with
-the number of evaluations, never with the number of environment steps. A configuration whose loss or parameters stop
-being finite is marked diverged and keeps that mark; it shares nothing with its neighbours in a vmapped sweep.
+An algorithm supplies `network(config, num_actions)`, `init(config, setup, key)`, `update(config, setup, state)`
+(one iteration: collect + learn), `params(state)` (its network parameters) and `greedy(config, setup, params,
+num_envs)` (its evaluation policy). `Algorithm.setup(config)` builds the env and network once per compiled program
+and every function gets them. The driver scans `updates_per_eval` updates, evaluates `eval_episodes` test episodes,
+and emits one small `EvalRow` per evaluation: memory grows with the number of evaluations, never with the number of
+environment steps. A configuration whose loss or parameters stop being finite is marked diverged and keeps that
+mark; it shares nothing with its neighbours in a vmapped sweep.
 """
 
 from __future__ import annotations
@@ -16,45 +18,39 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+from flax import linen as nn
 from flax import struct
 
 from amjax.agents.config import AgentConfig
 from amjax.agents.rollout import ActFn, EnvBatch, Transition, fast_key, reset_envs, step_envs
+from amjax.agents.setup import Setup, training_env
+from amjax.wrappers.episode_stats import EpisodeMetrics
 
 Policy = tuple[ActFn, Any]  # (act function, its initial agent carry for a batch of envs; None if memoryless)
 
 
 @struct.dataclass
-class EpisodeSums:
-    """Sums over finished episodes (divide by `count` for means)."""
+class FinishedEpisodes:
+    """How many episodes finished and the sums of their metrics (`means()` divides)."""
 
     count: jax.Array
-    costed_return: jax.Array
-    raw_return: jax.Array
-    length: jax.Array
-    measurements: jax.Array
+    sums: EpisodeMetrics
 
     @classmethod
-    def of(cls, transitions: Transition) -> EpisodeSums:
-        """Reduce the finished episodes in a batch of transitions (any leading axes)."""
+    def of(cls, transitions: Transition) -> FinishedEpisodes:
+        """The finished episodes in a batch of transitions (any leading axes)."""
         done = transitions.episode_done.astype(jnp.float32)
-        ep = transitions.episode
-        return cls(
-            count=done.sum(),
-            costed_return=(done * ep.costed_return).sum(),
-            raw_return=(done * ep.raw_return).sum(),
-            length=(done * ep.length).sum(),
-            measurements=(done * ep.measurements).sum(),
-        )
+        return cls(done.sum(), jax.tree.map(lambda x: (done * x).sum(), transitions.episode))
 
-    def means(self) -> dict[str, jax.Array]:
+    @classmethod
+    def zeros(cls) -> FinishedEpisodes:
+        zero = jnp.float32(0.0)
+        return cls(zero, EpisodeMetrics(zero, zero, zero, zero))
+
+    def means(self) -> EpisodeMetrics:
+        """Metrics per finished episode (NaN if none finished)."""
         count = jnp.where(self.count > 0, self.count, jnp.nan)
-        return {
-            "costed_return": self.costed_return / count,
-            "raw_return": self.raw_return / count,
-            "length": self.length / count,
-            "measurements": self.measurements / count,
-        }
+        return jax.tree.map(lambda x: x / count, self.sums)
 
 
 @struct.dataclass
@@ -62,24 +58,26 @@ class UpdateStats:
     """What one `update` reports: its loss and the training episodes that finished during it."""
 
     loss: jax.Array
-    episodes: EpisodeSums
+    episodes: FinishedEpisodes
 
 
 @struct.dataclass
 class EvalRow:
-    """One evaluation point of one configuration (means over test / training episodes)."""
+    """One evaluation point of one configuration. The results table names `test`'s columns eval_return (costed),
+    eval_raw_return, ... and `train`'s train_return, ... (`EpisodeMetrics.columns`)."""
 
     env_steps: jax.Array
-    eval_return: jax.Array  # greedy test episodes, costed reward
-    eval_raw_return: jax.Array
-    eval_length: jax.Array
-    eval_measurements: jax.Array  # paid measurements per test episode
-    train_return: jax.Array  # training episodes finished since the last evaluation (NaN if none)
-    train_raw_return: jax.Array
-    train_length: jax.Array
-    train_measurements: jax.Array
+    test: EpisodeMetrics  # means over the greedy test episodes
+    train: EpisodeMetrics  # means over the training episodes finished since the last evaluation (NaN if none)
     loss: jax.Array  # mean over the updates since the last evaluation
     diverged: jax.Array  # a loss or a parameter has been non-finite at some point so far
+
+    def columns(self) -> dict[str, jax.Array]:
+        """The results table's columns (each with this row's leading axes)."""
+        return {
+            "env_steps": self.env_steps, **self.test.columns("eval_"), **self.train.columns("train_"),
+            "loss": self.loss, "diverged": self.diverged,
+        }
 
 
 @struct.dataclass
@@ -104,10 +102,17 @@ class Algorithm:
 
     name: str
     config_type: type[AgentConfig]
-    init: Callable[[AgentConfig, jax.Array], Any]  # (config, key) -> algorithm state
-    update: Callable[[AgentConfig, Any], tuple[Any, UpdateStats]]  # (config, state) -> (state, stats)
-    greedy: Callable[[AgentConfig, Any], Policy]  # (config, params) -> evaluation policy
+    network: Callable[[AgentConfig, int], nn.Module]  # (config, num_actions) -> its network
+    init: Callable[[AgentConfig, Setup, jax.Array], Any]  # (config, setup, key) -> algorithm state
+    update: Callable[[AgentConfig, Setup, Any], tuple[Any, UpdateStats]]  # (config, setup, state) -> (state, stats)
+    greedy: Callable[[AgentConfig, Setup, Any, int], Policy]  # (config, setup, params, num_envs) -> policy
     params: Callable[[Any], Any]  # state -> network parameters
+
+    def setup(self, config: AgentConfig) -> Setup:
+        """The env and network of `config` (call once per compiled program; the traced cost and noise go into the
+        env params)."""
+        env, env_params, max_steps = training_env(config)
+        return Setup(env, env_params, max_steps, self.network(config, env.action_space(env_params).n))
 
 
 def evaluate(
@@ -117,8 +122,8 @@ def evaluate(
     policy: Policy,
     key: jax.Array,
     num_episodes: int,
-) -> EpisodeSums:
-    """Run `num_episodes` test episodes in parallel to their end; sums of their statistics.
+) -> FinishedEpisodes:
+    """Run `num_episodes` test episodes in parallel to their end; their count and the sums of their metrics.
 
     Randomness is drawn with Philox from the key's bits (`rollout.fast_key`): `reset_key, run_key = split(key)`;
     episode i starts from `reset(split(reset_key, N)[i])`; step t uses `act_key, env_key = split(split(run_key,
@@ -127,8 +132,6 @@ def evaluate(
     reset_key, run_key = jax.random.split(fast_key(key))
     batch = reset_envs(env, env_params, reset_key, num_episodes)
     finished = jnp.zeros(num_episodes, bool)
-    zero = jnp.float32(0.0)
-    sums = EpisodeSums(zero, zero, zero, zero, zero)
     step_keys = jax.random.split(run_key, max_steps)
 
     def running(loop):
@@ -136,18 +139,27 @@ def evaluate(
         return (t < max_steps) & ~jnp.all(finished)
 
     def one_step(loop):
-        t, batch, agent_carry, finished, sums = loop
+        t, batch, agent_carry, finished, episodes = loop
         act_key, env_key = jax.random.split(step_keys[t])
         action, agent_carry, _ = act(batch, agent_carry, act_key)
         batch, transition = step_envs(env, env_params, batch, action, env_key)
         first_end = transition.episode_done & ~finished
-        sums = jax.tree.map(jnp.add, sums, EpisodeSums.of(transition.replace(episode_done=first_end)))
-        return t + 1, batch, agent_carry, finished | transition.episode_done, sums
+        ended = FinishedEpisodes.of(transition.replace(episode_done=first_end))
+        return t + 1, batch, agent_carry, finished | transition.episode_done, jax.tree.map(jnp.add, episodes, ended)
 
     # Every episode ends within `max_steps` (the time limit truncates it); stepping stops once all have ended
     # (later steps would add nothing).
-    *_, sums = jax.lax.while_loop(running, one_step, (jnp.int32(0), batch, carry, finished, sums))
-    return sums
+    initial = (jnp.int32(0), batch, carry, finished, FinishedEpisodes.zeros())
+    *_, episodes = jax.lax.while_loop(running, one_step, initial)
+    return episodes
+
+
+def evaluate_greedy(
+    algo: Algorithm, config: AgentConfig, setup: Setup, params: Any, key: jax.Array, num_episodes: int
+) -> EpisodeMetrics:
+    """Means over `num_episodes` test episodes of `algo`'s greedy policy with network `params`."""
+    policy = algo.greedy(config, setup, params, num_episodes)
+    return evaluate(setup.env, setup.env_params, setup.max_steps, policy, key, num_episodes).means()
 
 
 # `fold_in` data of the re-scoring episodes. Evaluation i of a run draws its episodes from `fold_in(key, i)` with
@@ -155,23 +167,14 @@ def evaluate(
 RESCORE_STREAM = 0xFFFFFFFF
 
 
-def rescore(algo: Algorithm, config: AgentConfig, state: RunState) -> dict[str, jax.Array]:
+def rescore(algo: Algorithm, config: AgentConfig, state: RunState) -> EpisodeMetrics:
     """The best policy a run kept (`state.best_params`) re-scored on `config.rescore_episodes` fresh test episodes.
 
     The paper's metric, the best of many noisy evaluations, is biased upward; these episodes are drawn from a key
     stream disjoint from the evaluations that picked the policy (`RESCORE_STREAM`), so their mean is not. Returns
-    the mean costed return, raw return and episode length, and the measured fraction of steps."""
-    env, env_params, max_steps = config.make_env()
-    # Recurrent agents size their initial carry by eval_episodes.
-    policy = algo.greedy(config.replace(eval_episodes=config.rescore_episodes), state.best_params)
+    the metrics' means per episode."""
     key = jax.random.fold_in(state.key, jnp.uint32(RESCORE_STREAM))
-    means = evaluate(env, env_params, max_steps, policy, key, config.rescore_episodes).means()
-    return {
-        "return": means["costed_return"],
-        "raw_return": means["raw_return"],
-        "length": means["length"],
-        "measured_fraction": means["measurements"] / means["length"],
-    }
+    return evaluate_greedy(algo, config, algo.setup(config), state.best_params, key, config.rescore_episodes)
 
 
 def _all_finite(tree: Any) -> jax.Array:
@@ -181,7 +184,7 @@ def _all_finite(tree: Any) -> jax.Array:
 def init_run(algo: Algorithm, config: AgentConfig, key: jax.Array) -> RunState:
     """The initial `RunState` of one configuration."""
     algo_key, eval_key = jax.random.split(key)
-    algo_state = algo.init(config, algo_key)
+    algo_state = algo.init(config, algo.setup(config), algo_key)
     return RunState(
         algo=algo_state,
         key=eval_key,
@@ -197,47 +200,27 @@ def run_evals(
     algo: Algorithm, config: AgentConfig, state: RunState, num_evals: int
 ) -> tuple[RunState, EvalRow]:
     """Train for `num_evals` evaluation periods; returns the new state and one `EvalRow` per period."""
-    env, env_params, max_steps = config.make_env()
+    setup = algo.setup(config)
 
     def one_period(state: RunState, _):
         algo_state, stats = jax.lax.scan(
-            lambda s, _: algo.update(config, s), state.algo, None, config.updates_per_eval
+            lambda s, _: algo.update(config, setup, s), state.algo, None, config.updates_per_eval
         )
         train = jax.tree.map(lambda x: x.sum(0), stats.episodes).means()
         loss = stats.loss.mean()
         params = algo.params(algo_state)
-        test = evaluate(
-            env,
-            env_params,
-            max_steps,
-            algo.greedy(config, params),
-            jax.random.fold_in(state.key, state.evals_done),
-            config.eval_episodes,
-        ).means()
+        eval_key = jax.random.fold_in(state.key, state.evals_done)
+        test = evaluate_greedy(algo, config, setup, params, eval_key, config.eval_episodes)
         diverged = state.diverged | ~jnp.isfinite(loss) | ~_all_finite(params)
-        improved = (test["costed_return"] > state.best_return) & ~diverged
+        improved = (test.costed_return > state.best_return) & ~diverged
         evals_done = state.evals_done + 1
-        row = EvalRow(
-            env_steps=evals_done * config.eval_every,
-            eval_return=test["costed_return"],
-            eval_raw_return=test["raw_return"],
-            eval_length=test["length"],
-            eval_measurements=test["measurements"],
-            train_return=train["costed_return"],
-            train_raw_return=train["raw_return"],
-            train_length=train["length"],
-            train_measurements=train["measurements"],
-            loss=loss,
-            diverged=diverged,
-        )
+        row = EvalRow(evals_done * config.eval_every, test, train, loss, diverged)
         state = RunState(
             algo=algo_state,
             key=state.key,
             evals_done=evals_done,
-            best_return=jnp.where(improved, test["costed_return"], state.best_return),
-            best_measured_fraction=jnp.where(
-                improved, test["measurements"] / test["length"], state.best_measured_fraction
-            ),
+            best_return=jnp.where(improved, test.costed_return, state.best_return),
+            best_measured_fraction=jnp.where(improved, test.measured_fraction, state.best_measured_fraction),
             best_params=jax.tree.map(partial(jnp.where, improved), params, state.best_params),
             diverged=diverged,
         )
@@ -258,7 +241,7 @@ def make_train(algo: Algorithm) -> Callable[[AgentConfig, jax.Array], tuple[RunS
         return run_evals(algo, config, init_run(algo, config, key), config.num_evals)
 
     def train(config: AgentConfig, key: jax.Array) -> tuple[RunState, EvalRow]:
-        if type(config) is not algo.config_type:  # exact: PPORNNConfig subclasses PPOConfig
+        if type(config) is not algo.config_type:
             raise TypeError(f"config: expected {algo.config_type.__name__}, got {type(config).__name__}")
         config.validate()
         return compiled(config, key)
@@ -278,13 +261,14 @@ def greedy_policy(q_or_logits: Callable[[jax.Array], jax.Array]) -> Policy:
 
 __all__ = [
     "Algorithm",
-    "EpisodeSums",
     "EvalRow",
+    "FinishedEpisodes",
     "Policy",
     "RESCORE_STREAM",
     "RunState",
     "UpdateStats",
     "evaluate",
+    "evaluate_greedy",
     "greedy_policy",
     "init_run",
     "make_train",

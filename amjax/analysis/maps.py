@@ -129,14 +129,14 @@ def record_measurements(
 def _record_agent(
     algo_name: str, config: AgentConfig, params: Any, key: jax.Array, num_episodes: int
 ) -> dict[str, jax.Array]:
-    env, env_params, max_steps = config.make_env()
-    # Recurrent agents size their initial carry by eval_episodes.
-    act, carry = ALGORITHMS[algo_name].greedy(config.replace(eval_episodes=num_episodes), params)
-    return _scan(env, act, num_episodes, max_steps, env_params, carry, key)
+    algo = ALGORITHMS[algo_name]
+    setup = algo.setup(config)
+    act, carry = algo.greedy(config, setup, params, num_episodes)
+    return _scan(setup.env, act, num_episodes, setup.max_steps, setup.env_params, carry, key)
 
 
 def record_agent(config: AgentConfig, params: Any, key: jax.Array, num_episodes: int = 10) -> MeasurementMap:
-    """The measurement map of a trained agent's greedy policy on its own env (`config.make_env()`).
+    """The measurement map of a trained agent's greedy policy on its own env (`Algorithm.setup(config)`).
 
     `params` are the agent's network parameters: `RunState.best_params` (the best evaluation's policy) or
     `RunState.algo.params` (the last) from `ppo.train(config, key)`, or a loaded `SavedPolicy.params`. Configs

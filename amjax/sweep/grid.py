@@ -68,16 +68,26 @@ class SweepSpec:
 
 @dataclass(frozen=True)
 class RunConfig:
-    """One configuration of the grid: its identity, its seed and its full agent config."""
+    """One configuration of the grid: its identity, its seed and its full agent config (the one copy of its env,
+    cost and every other field)."""
 
     config_id: str
-    env: str
     agent: str
-    vanilla: bool
-    cost: float
     seed: int
     hyperparams: dict[str, Any]  # the swept values of this configuration (only the swept fields)
     config: AgentConfig
+
+    @property
+    def env(self) -> str:
+        return self.config.env_id
+
+    @property
+    def vanilla(self) -> bool:
+        return self.config.vanilla
+
+    @property
+    def cost(self) -> float:
+        return float(self.config.cost)
 
 
 def _as_values(name: str, value: Any) -> list[Any]:
@@ -183,12 +193,23 @@ def config_id(env: str, agent: str, vanilla: bool, cost: float, seed: int, hp: M
 
 
 def expand(spec: SweepSpec) -> list[RunConfig]:
-    """Every configuration of the sweep, each with its validated agent config."""
-    validate_spec(spec)
-    runs = list(_runs(spec))
-    for run in runs:
-        run.config.validate()
-    return runs
+    """Every configuration of the sweep, each with its validated agent config.
+
+    The last spec's expansion is kept, so a command line that checks a spec and then runs it expands it once; the
+    key is the spec's `repr` (it tells a tuple value from a list of values)."""
+    key = repr(spec)
+    if _last_expanded.get("key") != key:
+        validate_spec(spec)
+        runs = list(_runs(spec))
+        checked: set[AgentConfig] = set()
+        for run in runs:  # configurations that differ only in seed share one config
+            if run.config not in checked:
+                checked.add(run.config.validate())
+        _last_expanded.update(key=key, runs=runs)
+    return list(_last_expanded["runs"])
+
+
+_last_expanded: dict[str, Any] = {}
 
 
 def round_schedule(spec: SweepSpec) -> tuple[SweepSpec, str | None]:
@@ -241,8 +262,7 @@ def _runs(spec: SweepSpec) -> Iterator[RunConfig]:
                 eval_episodes=spec.eval_episodes,
                 **{**defaults, **{field_of[k]: tuple(v) if isinstance(v, list) else v for k, v in hp.items()}},
             )
-            yield RunConfig(config_id(env, agent, vanilla, cost, seed, hp), env, agent, vanilla, cost, seed, hp,
-                            config)
+            yield RunConfig(config_id(env, agent, vanilla, cost, seed, hp), agent, seed, hp, config)
 
 
 def group_runs(runs: Sequence[RunConfig]) -> list[list[RunConfig]]:

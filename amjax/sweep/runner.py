@@ -63,9 +63,9 @@ def _rescored_rows(batch: Batch, configs: Any, states: Any, devices: tuple[jax.D
     real = len(batch.runs)
     return pd.DataFrame({
         "config_id": [r.config_id for r in batch.runs],
-        "best_policy_return": np.asarray(scores["return"])[:real],
-        "best_policy_raw_return": np.asarray(scores["raw_return"])[:real],
-        "best_policy_measured_fraction": np.asarray(scores["measured_fraction"])[:real],
+        "best_policy_return": np.asarray(scores.costed_return)[:real],
+        "best_policy_raw_return": np.asarray(scores.raw_return)[:real],
+        "best_policy_measured_fraction": np.asarray(scores.measured_fraction)[:real],
         "best_policy_episodes": [r.config.rescore_episodes for r in batch.runs],
     })
 
@@ -100,7 +100,7 @@ def _real(batch: Batch, tree: Any) -> Any:
 
 def _rows(batch: Batch, rows: EvalRow, hyper_columns: list[str]) -> pd.DataFrame:
     """The evaluation rows of the real (unpadded) configurations of a batch as a tidy table."""
-    arrays = {k: np.asarray(v)[: len(batch.runs)] for k, v in vars(rows).items()}
+    arrays = {k: np.asarray(v)[: len(batch.runs)] for k, v in rows.columns().items()}
     num_evals = arrays["env_steps"].shape[1]
     frame = {
         "config_id": np.repeat([r.config_id for r in batch.runs], num_evals),

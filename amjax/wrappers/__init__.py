@@ -7,7 +7,7 @@ from amjax.wrappers.active_measure import (
     MeasureParams,
     MeasureState,
 )
-from amjax.wrappers.episode_stats import EpisodeStats, EpisodeStatsState, EpisodeTotals
+from amjax.wrappers.episode_stats import EpisodeMetrics, EpisodeStats, EpisodeStatsState
 
 __all__ = [
     "MODES",
@@ -15,7 +15,7 @@ __all__ = [
     "AlwaysMeasured",
     "EpisodeStats",
     "EpisodeStatsState",
-    "EpisodeTotals",
+    "EpisodeMetrics",
     "MeasureParams",
     "MeasureState",
 ]

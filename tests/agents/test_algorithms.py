@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -9,9 +10,22 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amjax.agents import DQN, PPO, DQNConfig, PPOConfig, init_run, run_evals, stack_configs, unstack_config
-from amjax.agents.dqn import epsilon, n_step_transitions, td_targets
-from amjax.agents.ppo import gae
+from amjax.agents import (
+    ALGORITHMS,
+    DQN,
+    PPO,
+    DQNConfig,
+    DRQNConfig,
+    PPOConfig,
+    PPORNNConfig,
+    agent_of,
+    init_run,
+    run_evals,
+    stack_configs,
+    unstack_config,
+)
+from amjax.agents.ppo_core import PPOBaseConfig, gae
+from amjax.agents.q_learning import QLearningConfig, epsilon, n_step_transitions, td_targets
 from amjax.agents.replay import replay_add, replay_init, replay_sample
 
 TINY = {
@@ -133,13 +147,13 @@ def test_seeds_determinism_and_vmap_equals_alone(name):
     for i in range(3):
         _, alone = _run(name, unstack_config(stacked, i), keys[i])
         for field in ("eval_return", "train_return", "loss", "eval_measurements"):
-            np.testing.assert_allclose(getattr(rows, field)[i], getattr(alone, field), rtol=2e-4, atol=2e-4)
+            np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
     # Same seed -> bit-identical; different seed -> different.
     _, again = _run(name, unstack_config(stacked, 0), keys[0])
     _, first = _run(name, unstack_config(stacked, 0), keys[0])
     _, other = _run(name, unstack_config(stacked, 0), keys[1])
     assert np.array_equal(np.asarray(first.loss), np.asarray(again.loss))
-    assert np.array_equal(np.asarray(first.train_return), np.asarray(again.train_return), equal_nan=True)
+    assert np.array_equal(np.asarray(first.train.costed_return), np.asarray(again.train.costed_return), equal_nan=True)
     assert not np.array_equal(np.asarray(first.loss), np.asarray(other.loss))
 
 
@@ -208,3 +222,42 @@ def test_n_step_transitions_default_window_longer_than_update():
             np.testing.assert_allclose(got["next_obs"][t, e], window["next_obs"][end, e])
             assert got["discount"][t, e] == pytest.approx(gamma**m * (1 - terminated[end, e]), abs=1e-6)
     np.testing.assert_allclose(np.asarray(got["discount"][:, 0]), gamma**n, rtol=1e-6)
+
+
+# -- configs and setup ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("base", "siblings"),
+    [(QLearningConfig, (DQNConfig, DRQNConfig)), (PPOBaseConfig, (PPOConfig, PPORNNConfig))],
+)
+def test_algorithm_pairs_are_siblings_of_one_base_config(base, siblings):
+    first, second = siblings
+    assert not issubclass(first, second) and not issubclass(second, first)
+    for config_type in siblings:
+        assert issubclass(config_type, base)
+        own = {f.name: f for f in dataclasses.fields(config_type)}
+        for field in dataclasses.fields(base):  # every base field, static or traced as the base declares it
+            assert own[field.name].metadata.get("pytree_node", True) == field.metadata.get("pytree_node", True)
+    assert {agent_of(config_type()) for config_type in siblings} == {a.name for a in ALGORITHMS.values()
+                                                                    if a.config_type in siblings}
+
+
+def test_ppo_rnn_config_reads_files_that_name_shared_network():
+    fields = PPORNNConfig(cost=0.2).to_dict()
+    assert "shared_network" not in fields
+    assert PPORNNConfig.from_dict({**fields, "shared_network": True}) == PPORNNConfig.from_dict(fields)
+    with pytest.raises(ValueError, match="shared_network"):
+        PPORNNConfig.from_dict({**fields, "shared_network": False})
+
+
+@pytest.mark.parametrize("name", sorted(ALGORITHMS))
+def test_setup_puts_each_configurations_traced_cost_into_the_env_params(name):
+    algo = ALGORITHMS[name]
+    configs = stack_configs([algo.config_type(cost=c, noise_std=0.0) for c in (0.0, 0.25, 0.5)])
+    costs = jax.jit(jax.vmap(lambda c: algo.setup(c).env_params.cost))(configs)
+    np.testing.assert_array_equal(costs, np.float32([0.0, 0.25, 0.5]))
+    setup = algo.setup(algo.config_type(cost=0.1))
+    assert setup.max_steps == 200 and setup.num_actions == 4  # CartPole-v0: 2 controls x {skip, measure}
+    vanilla = algo.setup(algo.config_type(vanilla=True))
+    assert vanilla.num_actions == 2 and not hasattr(vanilla.env_params, "cost")

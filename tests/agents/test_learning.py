@@ -45,9 +45,9 @@ def test_solves_cartpole_and_measures_less_under_cost(name):
     algo, base = BUDGETS[name]
     rows = train_rows(algo, [base.replace(cost=c) for c in COSTS for _ in SEEDS], [s for _ in COSTS for s in SEEDS])
     shape = (len(COSTS), len(SEEDS))
-    raw = np.asarray(rows.eval_raw_return)
-    measured = np.asarray(rows.eval_measurements / rows.eval_length)
-    best = np.argmax(np.asarray(rows.eval_return), axis=1)  # the best test costed return of each configuration
+    raw = np.asarray(rows.test.raw_return)
+    measured = np.asarray(rows.test.measured_fraction)
+    best = np.argmax(np.asarray(rows.test.costed_return), axis=1)  # the best test costed return of each configuration
     best_raw = raw[np.arange(len(best)), best].reshape(shape)
     best_measured = measured[np.arange(len(best)), best].reshape(shape)
     final_raw = raw[:, -1].reshape(shape)
@@ -64,8 +64,8 @@ def test_ppo_keeps_measuring_on_acrobot_under_cost():
     preset = {key.partition(".")[2]: value for key, value in env_hyperparams("Acrobot-v1", ("ppo",)).items()}
     config = PPOConfig(env_id="Acrobot-v1", cost=0.3, total_timesteps=61_440, eval_every=20_480, **preset)
     rows = train_rows(PPO, [config] * len(SEEDS), list(SEEDS))
-    measured = np.asarray(rows.train_measurements / rows.train_length)[:, -1]  # the last 20,480 steps' episodes
-    length = np.asarray(rows.train_length)[:, -1]
+    measured = np.asarray(rows.train.measured_fraction)[:, -1]  # the last 20,480 steps' episodes
+    length = np.asarray(rows.train.length)[:, -1]
     message = f"training episodes' measured fractions {measured.round(3).tolist()}, lengths {length.round(1).tolist()}"
     assert np.median(measured) > 0.25, message  # still measuring ...
     assert np.median(length) < 250, message  # ... and reaching the goal (Acrobot stops unsolved at 500 steps)

@@ -23,6 +23,7 @@ from amjax.agents import (
     DRQNConfig,
     PPOConfig,
     PPORNNConfig,
+    agent_of,
     drqn,
     init_run,
     ppo_rnn,
@@ -64,6 +65,15 @@ def _programs(name):
     return alone, lambda configs, keys: batched(configs, init(configs, keys))
 
 
+def _setup(config):
+    """The env and network an algorithm's functions take (`Algorithm.setup`)."""
+    return ALGORITHMS[agent_of(config)].setup(config)
+
+
+def _net(config):
+    return _setup(config).network
+
+
 @functools.cache
 def _probe_run(name):
     stacked = stack_configs([PROBE_CONFIGS[name].replace(**lane) for lane in LANES[name]])
@@ -77,14 +87,14 @@ def _probe_run(name):
 @pytest.mark.parametrize("name", ["drqn", "ppo-rnn"])
 def test_recurrent_agents_solve_the_memory_probe(name):
     _, _, rows = _probe_run(name)
-    final = rows.eval_return[:, -1]
+    final = rows.test.costed_return[:, -1]
     assert np.all(final >= 0.8), f"final test returns {final} (optimum 1, memoryless 0.2)"
 
 
 @pytest.mark.parametrize("name", ["dqn", "ppo"])
 def test_feed_forward_agents_cannot_solve_the_memory_probe(name):
     _, _, rows = _probe_run(name)
-    final = rows.eval_return[:, -1]
+    final = rows.test.costed_return[:, -1]
     # A memoryless policy earns 0.2 in expectation; the mean of 64 episodes has a standard deviation of 0.1.
     assert np.all(final <= 0.5), f"final test returns {final} (memoryless expectation 0.2)"
 
@@ -95,7 +105,7 @@ def test_vmapped_configuration_equals_it_alone(name):
     for i in (0, 2):
         _, alone = _programs(name)[0](unstack_config(stacked, i), KEYS[i])
         for field in ("eval_return", "train_return", "loss"):
-            np.testing.assert_allclose(getattr(rows, field)[i], getattr(alone, field), rtol=2e-4, atol=2e-4)
+            np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
 
 
 def test_memory_probe_rewards_and_observations():
@@ -151,8 +161,9 @@ def _assert_second_episode_forgets_the_first(carries, fresh):
 def test_hidden_state_resets_at_episode_starts_when_acting(name):
     module, config = {"drqn": (drqn, PROBE_CONFIGS["drqn"]), "ppo-rnn": (ppo_rnn, PROBE_CONFIGS["ppo-rnn"])}[name]
     config = config.replace(eval_episodes=2)
-    state = module.init(config, jax.random.PRNGKey(0))
-    act, carry = module.greedy(config, state.params)
+    setup = _setup(config)
+    state = module.init(config, setup, jax.random.PRNGKey(0))
+    act, carry = module.greedy(config, setup, state.params, 2)
     carries = _act_through(jax.jit(act), carry)
     # A fresh pair of envs playing only the second episode, from the policy's zero state.
     fresh = []
@@ -165,10 +176,10 @@ def test_hidden_state_resets_at_episode_starts_when_acting(name):
 
 def test_hidden_state_resets_inside_replayed_sequences():
     config = PROBE_CONFIGS["drqn"].replace(burn_in=2, seq_len=6)  # 8 steps: OBS / FIRST
-    state = drqn.init(config, jax.random.PRNGKey(0))
+    state = drqn.init(config, _setup(config), jax.random.PRNGKey(0))
     steps = {"obs": OBS, "first": FIRST, "next_obs": jnp.zeros_like(OBS)}
     start = jax.random.normal(jax.random.PRNGKey(1), (2, config.rnn_size))  # different stale stored states
-    q, _ = drqn.q_values(config, state.params, steps, start)
+    q, _ = drqn.q_values(config, _net(config), state.params, steps, start)
     trained_second = SECOND - config.burn_in
     np.testing.assert_array_equal(q[trained_second:, 0], q[trained_second:, 1])
     assert not np.allclose(q[trained_second - 1, 0], q[trained_second - 1, 1])
@@ -176,9 +187,9 @@ def test_hidden_state_resets_inside_replayed_sequences():
 
 def test_ppo_rnn_hidden_state_resets_inside_update_sequences():
     config = PROBE_CONFIGS["ppo-rnn"]
-    state = ppo_rnn.init(config, jax.random.PRNGKey(0))
+    state = ppo_rnn.init(config, _setup(config), jax.random.PRNGKey(0))
     start = jax.random.normal(jax.random.PRNGKey(1), (2, config.rnn_size))
-    logits, values = ppo_rnn.unroll_sequences(config, state.params, start, OBS, FIRST)
+    logits, values = ppo_rnn.unroll_sequences(_net(config), state.params, start, OBS, FIRST)
     np.testing.assert_array_equal(logits[SECOND:, 0], logits[SECOND:, 1])
     np.testing.assert_array_equal(values[SECOND:, 0], values[SECOND:, 1])
 
@@ -211,8 +222,8 @@ def test_sequence_buffer_windows_ring_and_sampling():
 def _drqn_buffer(burn_in=3):
     """DRQN after 8 updates on the probe (5-step episodes, 11-step sequences), before any learning."""
     config = PROBE_CONFIGS["drqn"].replace(burn_in=burn_in, seq_len=8, train_freq=4, learning_starts=10**6)
-    state = drqn.init(config, jax.random.PRNGKey(0))
-    update = jax.jit(lambda s: drqn.update(config, s)[0])
+    state = drqn.init(config, _setup(config), jax.random.PRNGKey(0))
+    update = jax.jit(lambda s: drqn.update(config, _setup(config), s)[0])
     for _ in range(8):
         state = update(state)
     return config, state
@@ -233,8 +244,8 @@ def test_stored_sequences_keep_their_episode_boundaries():
 def test_targets_never_reach_into_the_next_episode():
     config, state = _drqn_buffer()
     steps, start = sequence_sample(state.buffer, jax.random.PRNGKey(0), 16)
-    q, q_next = drqn.q_values(config, state.params, steps, start)
-    _, q_next_target = drqn.q_values(config, state.target_params, steps, start)
+    q, q_next = drqn.q_values(config, _net(config), state.params, steps, start)
+    _, q_next_target = drqn.q_values(config, _net(config), state.target_params, steps, start)
     targets = drqn.sequence_targets(config, steps, q_next, q_next_target)
     done = np.asarray(steps["done"][config.burn_in :]) > 0
     # Perturb every reward and bootstrap value after each sequence's first episode end: the targets up to and
@@ -253,7 +264,7 @@ def test_targets_never_reach_into_the_next_episode():
     # Hidden states: Q-values after an episode start do not depend on anything before it.
     first = np.asarray(steps["first"][config.burn_in :])
     shuffled = {**steps, "obs": steps["obs"].at[: config.burn_in].multiply(-3.0)}
-    q2, _ = drqn.q_values(config, state.params, shuffled, jax.tree.map(lambda c: c * 0 + 5.0, start))
+    q2, _ = drqn.q_values(config, _net(config), state.params, shuffled, jax.tree.map(lambda c: c * 0 + 5.0, start))
     seen_start = np.maximum.accumulate(first, axis=0)  # at or after the first episode start in the trained part
     np.testing.assert_allclose(np.asarray(q2)[seen_start], np.asarray(q)[seen_start], rtol=1e-6, atol=1e-6)
     assert not np.allclose(np.asarray(q2)[~seen_start], np.asarray(q)[~seen_start])
@@ -267,7 +278,7 @@ def test_stored_start_state_is_the_actors_hidden_state():
     the actor had: the state after `train_freq` steps is the next stored sequence's start."""
     config, state = _drqn_buffer(burn_in=0)
     storage, n, f = state.buffer.storage, config.num_envs, config.train_freq
-    net = drqn.network(config)
+    net = _net(config)
     for slot in range(int(state.buffer.size) - n):
         seq = jax.tree.map(lambda x, slot=slot: x[slot][:, None], storage["steps"])  # one sequence, batch 1
         carry = storage["start"][slot][None]
@@ -281,17 +292,17 @@ def test_burn_in_warms_up_the_state_without_gradient_or_loss():
     steps, start = sequence_sample(state.buffer, jax.random.PRNGKey(1), 32)
     b = config.burn_in
     # q_values = a full unroll from the stored state, minus the burn-in outputs.
-    net = drqn.network(config)
+    net = _net(config)
     carry, full = start, []
     for t in range(config.sequence_length):
         carry, q = net.apply(state.params, carry, steps["obs"][t], steps["first"][t])
         full.append(q)
-    q, _ = drqn.q_values(config, state.params, steps, start)
+    q, _ = drqn.q_values(config, _net(config), state.params, steps, start)
     np.testing.assert_allclose(q, jnp.stack(full[b:]), rtol=1e-5, atol=1e-5)
 
     # The loss ignores burn-in rewards / actions / flags, and no gradient flows into burn-in observations.
     def loss_of(obs, steps):
-        return drqn.loss(config, state.params, state.target_params, {**steps, "obs": obs}, start)
+        return drqn.loss(config, _net(config), state.params, state.target_params, {**steps, "obs": obs}, start)
 
     noisy = {**steps, "reward": steps["reward"].at[:b].add(7.0), "action": steps["action"].at[:b].set(1),
              "terminated": steps["terminated"].at[:b].set(1.0)}
@@ -300,7 +311,7 @@ def test_burn_in_warms_up_the_state_without_gradient_or_loss():
     assert np.all(np.asarray(grad[:b]) == 0)
     assert np.any(np.asarray(grad[b:]) != 0)
     # ... but the burn-in does shape the trained steps' hidden states (where no episode starts in between).
-    q_zero_state, _ = drqn.q_values(config, state.params, steps, jnp.zeros_like(start))
+    q_zero_state, _ = drqn.q_values(config, _net(config), state.params, steps, jnp.zeros_like(start))
     no_reset = ~np.asarray(steps["first"][: b + 1]).any(0)
     assert no_reset.any()
     assert not np.allclose(np.asarray(q_zero_state)[0, no_reset], np.asarray(q)[0, no_reset])
@@ -310,14 +321,14 @@ def test_ppo_rnn_update_recomputes_the_rollouts_outputs():
     """The update epochs re-unroll whole env sequences from the rollout's initial hidden states: at the rollout's
     parameters they reproduce the acting log-probabilities and values, for any subset of envs."""
     config = PROBE_CONFIGS["ppo-rnn"].replace(num_steps=12)
-    state = ppo_rnn.init(config, jax.random.PRNGKey(0))
+    state = ppo_rnn.init(config, _setup(config), jax.random.PRNGKey(0))
     start = jax.tree.map(lambda c: c + 0.3, state.carry)  # a mid-episode state
     _, _, transitions, (log_probs, values, first, _) = ppo_rnn.collect(
-        config, state.params, state.envs, start, jax.random.PRNGKey(1)
+        config, _setup(config), state.params, state.envs, start, jax.random.PRNGKey(1)
     )
     envs = jnp.asarray([5, 2, 7])
     logits, new_values = ppo_rnn.unroll_sequences(
-        config, state.params, start[envs], transitions.obs[:, envs], first[:, envs]
+        _net(config), state.params, start[envs], transitions.obs[:, envs], first[:, envs]
     )
     new_log_probs = jnp.take_along_axis(jax.nn.log_softmax(logits), transitions.action[:, envs, None], -1)[..., 0]
     np.testing.assert_allclose(new_log_probs, log_probs[:, envs], rtol=1e-5, atol=1e-5)
@@ -339,8 +350,8 @@ def test_invalid_recurrent_configs_name_the_field():
 
 def test_lstm_cells_train_and_checkpoint_as_arrays():
     config = PROBE_CONFIGS["drqn"].replace(cell="lstm")
-    state = drqn.init(config, jax.random.PRNGKey(0))
+    state = drqn.init(config, _setup(config), jax.random.PRNGKey(0))
     assert isinstance(state.carry, tuple) and len(state.carry) == 2
     assert all(isinstance(x, jax.Array) for x in jax.tree.leaves(state))
-    state, stats = jax.jit(lambda s: drqn.update(config, s))(state)
+    state, stats = jax.jit(lambda s: drqn.update(config, _setup(config), s))(state)
     assert np.isfinite(float(stats.loss))

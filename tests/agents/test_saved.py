@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 from flax import serialization
 
-from amjax.agents import PolicyFileError, load_policy, ppo, save_policy
+from amjax.agents import ALGORITHMS, PolicyFileError, agent_of, load_policy, ppo, save_policy, training_env
 from amjax.agents import drqn as drqn_module
 from amjax.agents.training import evaluate
 
@@ -26,9 +27,10 @@ def trained():
 
 
 def _in_memory(config, params, key, episodes, module):
-    env, env_params, max_steps = config.make_env()
-    policy = module.greedy(config.replace(eval_episodes=episodes), params)
-    return {k: float(v) for k, v in evaluate(env, env_params, max_steps, policy, key, episodes).means().items()}
+    setup = ALGORITHMS[agent_of(config)].setup(config)
+    policy = module.greedy(config, setup, params, episodes)
+    means = evaluate(setup.env, setup.env_params, setup.max_steps, policy, key, episodes).means()
+    return {k: float(v) for k, v in dataclasses.asdict(means).items()}
 
 
 def test_save_load_evaluate_equals_in_memory(tmp_path, trained):
@@ -42,7 +44,7 @@ def test_save_load_evaluate_equals_in_memory(tmp_path, trained):
     key = jax.random.key(7)
     assert saved.evaluate(key, 12) == _in_memory(PPO_CONFIG, state.best_params, key, 12, ppo)
     # The best evaluation's parameters reproduce the best evaluation's score (same key as the driver used).
-    best = int(np.argmax(np.asarray(rows.eval_return)))
+    best = int(np.argmax(np.asarray(rows.test.costed_return)))
     eval_key = jax.random.fold_in(state.key, best)
     assert saved.evaluate(eval_key, PPO_CONFIG.eval_episodes)["costed_return"] == pytest.approx(
         float(state.best_return), rel=1e-6)
@@ -53,12 +55,12 @@ def test_save_load_evaluate_equals_in_memory(tmp_path, trained):
 
 def test_recurrent_policy_round_trip_and_actor(tmp_path):
     config = drqn_module.DRQNConfig(env_id="CartPole-v0", cost=0.1, hidden=(16,), rnn_size=8)
-    params = drqn_module.DRQN.params(drqn_module.init(config, jax.random.key(3)))
+    params = drqn_module.DRQN.params(drqn_module.init(config, drqn_module.DRQN.setup(config), jax.random.key(3)))
     saved = load_policy(save_policy(tmp_path / "r.msgpack", config, params))
     key = jax.random.key(1)
     assert saved.evaluate(key, 5) == _in_memory(config, params, key, 5, drqn_module)
     # The one-env actor follows the batched greedy policy step by step, hidden state included.
-    env, env_params, _ = config.make_env()
+    env, env_params, _ = training_env(config)
     obs, env_state = env.reset(jax.random.key(0), env_params)
     act, carry = saved.policy(num_envs=1)
     actor = saved.actor()

@@ -275,11 +275,12 @@ def test_record_measurements_matches_hand_loop(pattern):
 
 def test_record_agent_and_plot(tmp_path):
     config = ppo.PPOConfig(env_id="CartPole-v0", cost=0.2, num_envs=4, num_steps=32, hidden=(16,))
-    params = ppo.init(config, jax.random.key(0)).params  # an untrained policy is enough to test the plumbing
+    setup = ppo.PPO.setup(config)
+    params = ppo.init(config, setup, jax.random.key(0)).params  # an untrained policy is enough to test the plumbing
     key = jax.random.key(1)
     mmap = analysis.record_agent(config, params, key, num_episodes=4)
-    env, env_params, max_steps = config.make_env()
-    by_policy = analysis.record_measurements(env, env_params, ppo.greedy(config, params), key, 4)
+    max_steps = setup.max_steps
+    by_policy = analysis.record_measurements(setup.env, setup.env_params, ppo.greedy(config, setup, params, 4), key, 4)
     assert mmap.measured.shape == (4, max_steps) == (4, 200)
     np.testing.assert_array_equal(mmap.measured, by_policy.measured)
     np.testing.assert_array_equal(mmap.active, by_policy.active)
@@ -300,7 +301,7 @@ def test_record_agent_sizes_a_recurrent_carry():
     config = algo.config_type(env_id="CartPole-v0", cost=0.2)
     assert config.eval_episodes != 3  # the carry is resized to the recorded episodes
     mmap = analysis.record_agent(
-        config, algo.params(algo.init(config, jax.random.key(0))), jax.random.key(1), num_episodes=3
+        config, algo.params(algo.init(config, algo.setup(config), jax.random.key(0))), jax.random.key(1), num_episodes=3
     )
     assert mmap.measured.shape == (3, 200) and mmap.active[:, 0].all()
 

@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from amjax.agents import ALGORITHMS, init_run, rescore, run_evals
+from amjax.agents import ALGORITHMS, init_run, rescore, run_evals, training_env
 from amjax.agents.rollout import fast_key, reset_envs
 from amjax.agents.training import RESCORE_STREAM
 from amjax.sweep import SweepSpec, expand, load_sweep_policy, run_sweep
@@ -57,13 +57,13 @@ def test_sweep_rescore_equals_the_run_alone(sweep):
         state, _ = jax.jit(lambda c, k, a=algo: run_evals(a, c, init_run(a, c, k), c.num_evals))(
             run.config, jax.random.PRNGKey(run.seed))
         alone = rescore(algo, run.config, state)
-        assert float(alone["return"]) == pytest.approx(summary.loc[run.config_id].best_policy_return, rel=1e-5)
+        assert float(alone.costed_return) == pytest.approx(summary.loc[run.config_id].best_policy_return, rel=1e-5)
 
 
 def test_rescoring_episodes_are_not_the_selection_episodes():
     (run,) = expand(SweepSpec(agents=("ppo",), costs=(0.1,), seeds=(3,), total_timesteps=4096, eval_every=1024))
     state = init_run(ALGORITHMS["ppo"], run.config, jax.random.PRNGKey(run.seed))
-    env, params, _ = run.config.make_env()
+    env, params, _ = training_env(run.config)
 
     def first_observations(key):  # what `evaluate` starts its episodes from (its docstring's key rule)
         reset_key, _ = jax.random.split(fast_key(key))
@@ -113,4 +113,4 @@ def test_every_agent_rescores_with_more_episodes_than_it_evaluates(agent):
     (run,) = expand(spec)
     state = init_run(ALGORITHMS[agent], run.config, jax.random.PRNGKey(0))
     scores = jax.jit(lambda c, s: rescore(ALGORITHMS[agent], c, s))(run.config, state)
-    assert np.isfinite(float(scores["return"])) and 0.0 <= float(scores["measured_fraction"]) <= 1.0
+    assert np.isfinite(float(scores.costed_return)) and 0.0 <= float(scores.measured_fraction) <= 1.0

@@ -61,6 +61,14 @@ def test_grid_groups_and_ids():
     assert [r.config_id for r in expand(TINY)] == [r.config_id for r in runs]  # stable across calls
     widths = SweepSpec(**{**TINY.__dict__, "hyperparams": {"hidden": [(32,), (16, 16)]}})
     assert len(group_runs(expand(widths))) == 2  # a static field compiles separately
+    # One copy of each field: a run's env, cost and vanilla flag are its agent config's.
+    assert all((r.env, r.cost, r.vanilla) == (r.config.env_id, float(r.config.cost), r.config.vanilla) for r in runs)
+    # The last expansion is reused, keyed so that one tuple value and a list of values stay different sweeps.
+    one_width = SweepSpec(**{**TINY.__dict__, "hyperparams": {"hidden": (32, 16)}})
+    two_widths = SweepSpec(**{**TINY.__dict__, "hyperparams": {"hidden": [(32,), (16,)]}})
+    assert len(expand(one_width)) == 4 and len(expand(two_widths)) == 8 and len(expand(one_width)) == 4
+    with pytest.raises(ValueError, match="hidden"):  # [32, 16] is two values (not widths), never the tuple's runs
+        expand(SweepSpec(**{**TINY.__dict__, "hyperparams": {"hidden": [32, 16]}}))
 
 
 def test_agent_scoped_hyperparameters():

@@ -1,0 +1,181 @@
+"""What Dueling DQN (dqn.py) and DRQN (drqn.py) share: their base config, the epsilon schedule and epsilon-greedy
+action, the optimiser, n-step double-Q targets and the target-network update.
+
+Both algorithms are siblings of `QLearningConfig`: each adds only its own fields (DRQN: the sequence length, burn-in
+and recurrent core) and its own defaults.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from amjax.agents.config import AgentConfig, static
+from amjax.agents.optim import clipped_adam
+from amjax.agents.rollout import Transition
+from amjax.batching import uniform_cond
+from amjax.validation import check_choice, check_positive_int
+
+
+@struct.dataclass
+class QLearningConfig(AgentConfig):
+    """Fields of every Q-learning agent (defaults: Dueling DQN's)."""
+
+    num_envs: int = static(1)
+    buffer_size: int = static(100_000)  # transitions (DRQN: sequences)
+    batch_size: int = static(64)  # transitions (DRQN: sequences) per gradient step
+    learning_starts: int = static(1_000)  # env steps taken before the first gradient step
+    train_freq: int = static(4)  # steps per env between gradient phases
+    gradient_steps: int = static(1)
+    target_update_interval: int = static(2_000)  # env steps between target updates
+    hidden: Sequence[int] = static((64, 64))
+    activation: str = static("relu")
+    dueling: bool = static(True)
+    double_q: bool = static(True)
+    n_step: int = static(10)  # multi-step returns (1 = one-step); see dqn.py
+    anneal_lr: bool = static(True)  # linear decay of the learning rate to 0 over training
+    learning_rate: float = 1e-3
+    gamma: float = 0.99
+    tau: float = 1.0  # target update rate (1 = hard copy)
+    epsilon_start: float = 1.0
+    epsilon_end: float = 0.05
+    exploration_fraction: float = 0.3  # fraction of training over which epsilon decays linearly
+    max_grad_norm: float = 10.0
+
+    TRACED_BOUNDS: ClassVar[dict[str, str]] = {
+        "learning_rate": "positive",
+        "gamma": "unit",
+        "tau": "unit",
+        "epsilon_start": "unit",
+        "epsilon_end": "unit",
+        "exploration_fraction": "unit",
+        "max_grad_norm": "positive",
+    }
+
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.train_freq
+
+    def check_fields(self) -> None:
+        for name in (
+            "num_envs", "buffer_size", "batch_size", "train_freq", "gradient_steps", "target_update_interval",
+            "n_step",
+        ):
+            check_positive_int(name, getattr(self, name))
+        check_positive_int("learning_starts", self.learning_starts, minimum=0)
+        check_choice("activation", self.activation, ("tanh", "relu", "elu"))
+        super().check_fields()
+
+
+def make_optimizer(config: QLearningConfig) -> optax.GradientTransformation:
+    num_updates = config.total_timesteps // config.steps_per_update()
+    return clipped_adam(
+        config.learning_rate,
+        config.max_grad_norm,
+        total_steps=num_updates * config.gradient_steps,
+        anneal=config.anneal_lr,
+    )
+
+
+def epsilon(config: QLearningConfig, env_steps: jax.Array) -> jax.Array:
+    """Linear decay from epsilon_start to epsilon_end over exploration_fraction of training."""
+    decay_steps = jnp.maximum(config.exploration_fraction * config.total_timesteps, 1.0)
+    progress = jnp.minimum(env_steps / decay_steps, 1.0)
+    return config.epsilon_start + progress * (config.epsilon_end - config.epsilon_start)
+
+
+def epsilon_greedy(q: jax.Array, key: jax.Array, eps: jax.Array) -> jax.Array:
+    """argmax_a q[..., a], or with probability `eps` a uniformly random action."""
+    explore_key, random_key = jax.random.split(key)
+    greedy_action = jnp.argmax(q, -1)
+    random_action = jax.random.randint(random_key, greedy_action.shape, 0, q.shape[-1])
+    explore = jax.random.uniform(explore_key, greedy_action.shape) < eps
+    return jnp.where(explore, random_action, greedy_action)
+
+
+def transition_arrays(transitions: Transition) -> dict[str, jax.Array]:
+    return {
+        "obs": transitions.obs,
+        "action": transitions.action,
+        "reward": transitions.reward,
+        "next_obs": transitions.next_obs,
+        "terminated": transitions.terminated.astype(jnp.float32),
+        "done": transitions.done.astype(jnp.float32),
+    }
+
+
+def n_step_transitions(window: dict[str, jax.Array], n: int, gamma: jax.Array) -> dict[str, jax.Array]:
+    """n-step transitions from a [T + n - 1, num_envs] window of one-step transitions, for its first T steps.
+
+    reward = sum_{k<m} gamma^k r_{t+k}, where m <= n stops after the first episode end; next_obs = the pre-reset
+    observation after step t+m-1; discount = gamma^m (1 - terminated_{t+m-1}) multiplies the bootstrap value.
+    """
+    T = window["reward"].shape[0] - (n - 1)
+    reward = jnp.zeros_like(window["reward"][:T])
+    next_obs = window["next_obs"][:T]
+    discount = jnp.zeros_like(reward)
+    alive = jnp.ones_like(reward)  # no episode end yet inside the window
+    scale = jnp.ones_like(reward)  # gamma^k
+    for k in range(n):  # n is static and small
+        reward = reward + alive * scale * window["reward"][k : k + T]
+        scale = scale * gamma
+        keep = alive[..., None] > 0
+        next_obs = jnp.where(keep, window["next_obs"][k : k + T], next_obs)
+        discount = jnp.where(alive > 0, scale * (1.0 - window["terminated"][k : k + T]), discount)
+        alive = alive * (1.0 - window["done"][k : k + T])
+    return {
+        "obs": window["obs"][:T],
+        "action": window["action"][:T],
+        "reward": reward,
+        "next_obs": next_obs,
+        "discount": discount,
+    }
+
+
+def td_targets(
+    q_next_online: jax.Array,
+    q_next_target: jax.Array,
+    reward: jax.Array,
+    discount: jax.Array,
+    double_q: bool = True,
+) -> jax.Array:
+    """reward + discount * Q_target(s', a*), a* = argmax_a Q_online(s', a) (double) or argmax Q_target(s', a).
+
+    For one-step DQN, discount = gamma (1 - terminated); for n-step, see `n_step_transitions`."""
+    chooser = q_next_online if double_q else q_next_target
+    best = jnp.argmax(chooser, axis=-1)
+    bootstrap = jnp.take_along_axis(q_next_target, best[..., None], -1)[..., 0]
+    return reward + discount * bootstrap
+
+
+def learn_or_wait(learning: jax.Array, learn: Any, *operands: Any) -> tuple[Any, Any, jax.Array]:
+    """`learn(*operands) -> (params, opt_state, loss)` once learning has started; before, the params and optimiser
+    state of `operands[:2]` unchanged and a zero loss. A real branch in a vmapped sweep (`uniform_cond`: every
+    configuration of a batch starts learning at the same step)."""
+
+    def wait(params: Any, opt_state: Any, *_: Any) -> tuple[Any, Any, jax.Array]:
+        return params, opt_state, jnp.float32(0.0)
+
+    return uniform_cond(learning, learn, wait, *operands)
+
+
+def update_target(
+    config: QLearningConfig, learning: jax.Array, env_steps: jax.Array, new_env_steps: jax.Array, params: Any,
+    target_params: Any,
+) -> Any:
+    """The target network, blended with rate tau each time `target_update_interval` env steps have passed (from
+    `env_steps` to `new_env_steps`) once learning has started."""
+    interval = config.target_update_interval
+    sync = learning & (new_env_steps // interval != env_steps // interval)
+    return uniform_cond(
+        sync,
+        lambda tau, params, target: optax.incremental_update(params, target, tau),
+        lambda tau, params, target: target,
+        config.tau,
+        params,
+        target_params,
+    )
