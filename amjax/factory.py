@@ -9,7 +9,14 @@ from gymnax.environments.environment import Environment
 
 from amjax.envs.registry import make_env
 from amjax.validation import check_bool, check_choice, check_real
-from amjax.wrappers.active_measure import MODES, ActiveMeasure, AlwaysMeasured, MeasureParams
+from amjax.wrappers.active_measure import (
+    MODES,
+    REWARD_TIMINGS,
+    ActiveMeasure,
+    AlwaysMeasured,
+    MeasureParams,
+    check_extra_obs,
+)
 
 
 def make(
@@ -19,6 +26,9 @@ def make(
     flag: bool = True,
     noise_std: Any = None,
     vanilla: bool = False,
+    extra_obs: tuple[str, ...] = (),
+    budget: Any = None,
+    reward_timing: str = "immediate",
 ) -> tuple[Environment, Any]:
     """Build `env_id` wrapped as an active-measure MDP; returns `(env, params)`.
 
@@ -31,14 +41,27 @@ def make(
       flag: append 1 (fresh) / 0 (stale) to the observation.
       noise_std: standard deviation for mode "noisy" (required there, refused elsewhere).
       vanilla: return the plain environment instead (always measured, cost 0, same info keys).
+      extra_obs: features appended to the observation after the flag: "since_measured" (steps since the shown
+        observation was measured, log-scaled to [0, 1]) and/or "last_action" (the last control action).
+      budget: at most this many paid measurements per episode (>= 0; a number or an array, traced like the cost);
+        requests beyond it are not carried out, and the remaining fraction is appended to the observation. None:
+        no budget.
+      reward_timing: "immediate" (the paper's) or "on_measure": the raw reward of unmeasured steps is withheld and
+        paid, summed, at the next measurement or at the episode's end.
     """
     check_bool("vanilla", vanilla)
     check_bool("flag", flag)
     if vanilla:
-        if noise_std is not None or mode != "last" or check_real("cost", cost).any():
-            raise ValueError("vanilla=True takes no cost, mode or noise_std: it never hides a state")
+        if (noise_std is not None or mode != "last" or check_real("cost", cost).any() or extra_obs
+                or budget is not None or reward_timing != "immediate"):
+            raise ValueError("vanilla=True takes no cost, mode, noise_std, extra_obs, budget or reward_timing: it "
+                             "never hides a state")
         return wrap(env_id, vanilla=True)
     check_choice("mode", mode, MODES)
+    extra_obs = check_extra_obs(extra_obs)
+    check_choice("reward_timing", reward_timing, REWARD_TIMINGS)
+    if budget is not None:
+        budget = check_real("budget", budget, low=0.0)
     cost = check_real("cost", cost, low=0.0)
     if mode == "noisy":
         if noise_std is None:
@@ -48,11 +71,20 @@ def make(
         raise ValueError(f"noise_std is only used with mode='noisy' (mode is {mode!r})")
     else:
         noise_std = 0.0
-    wrapped, env_params = wrap(env_id, mode, flag)
-    return wrapped, measure_params(env_params, cost, noise_std)
+    wrapped, env_params = wrap(env_id, mode, flag, extra_obs=extra_obs, budgeted=budget is not None,
+                               reward_timing=reward_timing)
+    return wrapped, measure_params(env_params, cost, noise_std, budget)
 
 
-def wrap(env_id: str, mode: str = "last", flag: bool = True, vanilla: bool = False) -> tuple[Environment, Any]:
+def wrap(
+    env_id: str,
+    mode: str = "last",
+    flag: bool = True,
+    vanilla: bool = False,
+    extra_obs: tuple[str, ...] = (),
+    budgeted: bool = False,
+    reward_timing: str = "immediate",
+) -> tuple[Environment, Any]:
     """The wrapped environment and the *inner* env's params, unchecked (`make` checks its arguments first).
 
     The trainers call this with a config's static fields and build the params from its traced cost and noise with
@@ -60,13 +92,16 @@ def wrap(env_id: str, mode: str = "last", flag: bool = True, vanilla: bool = Fal
     env, env_params = make_env(env_id)
     if vanilla:
         return AlwaysMeasured(env, env_params), env_params
-    return ActiveMeasure(env, mode=mode, flag=flag, env_params=env_params), env_params
+    wrapped = ActiveMeasure(env, mode, flag, env_params, tuple(extra_obs), budgeted, reward_timing)
+    return wrapped, env_params
 
 
-def measure_params(env_params: Any, cost: Any, noise_std: Any) -> MeasureParams:
-    """`MeasureParams` around the inner env's params; `cost` and `noise_std` may be traced (float32 arrays)."""
+def measure_params(env_params: Any, cost: Any, noise_std: Any, budget: Any = None) -> MeasureParams:
+    """`MeasureParams` around the inner env's params; `cost`, `noise_std` and `budget` (None: no budget) may be
+    traced (float32 arrays)."""
     return MeasureParams(
         env_params=env_params,
         cost=jnp.asarray(cost, jnp.float32),
         noise_std=jnp.asarray(noise_std, jnp.float32),
+        budget=None if budget is None else jnp.asarray(budget, jnp.float32),
     )

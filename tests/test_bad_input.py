@@ -65,6 +65,12 @@ SWEEP_CASES = [
     (["--set", "total_timesteps=1000"], "total_timesteps is set for the whole sweep"),
     (["--set", "cost=0.5"], "cost is a grid axis"),
     (["--set", "dqn.gamma=0.9"], "agent 'dqn' is not in this sweep's agents"),
+    (["--set", "extra_obs=('since',)"], "extra_obs: got 'since'"),
+    (["--set", "extra_obs=since_measured"], "extra_obs: got 'since_measured'"),
+    (["--set", "budget=5"], "budget: set budgeted=True"),
+    (["--set", "budgeted=True", "--set", "budget=-1"], "budget: got -1"),
+    (["--set", "budgeted=1"], "budgeted: got 1"),
+    (["--set", "reward_timing=later"], "reward_timing: got 'later'"),
     (["--set", "=3"], "--set: expected NAME=VALUE"),
     (["--set", "gamma"], "--set: expected NAME=VALUE"),
 ]

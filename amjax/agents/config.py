@@ -17,7 +17,7 @@ from flax import struct
 
 from amjax.envs.registry import make_env
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
-from amjax.wrappers.active_measure import MODES
+from amjax.wrappers.active_measure import MODES, REWARD_TIMINGS, check_extra_obs
 
 _BOUNDS = {
     "positive": {"low": 0.0, "low_inclusive": False},
@@ -55,8 +55,13 @@ class AgentConfig:
     eval_every: int = static(10_000)  # env steps between greedy evaluations
     eval_episodes: int = static(10)  # test episodes per evaluation
     rescore_episodes: int = static(100)  # fresh test episodes that re-score the best policy at the end of a sweep
+    # Options beyond the paper (amjax.make's arguments of the same names; see wrappers/active_measure.py).
+    extra_obs: tuple[str, ...] = static(())  # "since_measured" and/or "last_action", appended after the flag
+    budgeted: bool = static(False)  # enforce `budget` (and show the fraction left)
+    reward_timing: str = static("immediate")  # or "on_measure": raw rewards paid at the next measurement
     cost: float = 0.0  # traced: charged per measurement
     noise_std: float = 0.0  # traced: std of the observation noise in mode "noisy"
+    budget: float = 0.0  # traced: paid measurements allowed per episode (with budgeted=True)
 
     # The allowed range of each traced field of a subclass: "positive" (> 0), "nonnegative" (>= 0) or "unit"
     # ([0, 1]); every value must be finite.
@@ -107,7 +112,13 @@ class AgentConfig:
         check_choice("mode", self.mode, MODES)
         check_bool("flag", self.flag)
         check_bool("vanilla", self.vanilla)
-        bounds = {"cost": "nonnegative", "noise_std": "nonnegative", **self.TRACED_BOUNDS}
+        check_extra_obs(self.extra_obs)
+        check_bool("budgeted", self.budgeted)
+        check_choice("reward_timing", self.reward_timing, REWARD_TIMINGS)
+        if self.vanilla and (self.extra_obs or self.budgeted or self.reward_timing != "immediate"):
+            raise ValueError("vanilla: a vanilla run never hides a state; it takes no extra_obs, budgeted or "
+                             "reward_timing")
+        bounds = {"cost": "nonnegative", "noise_std": "nonnegative", "budget": "nonnegative", **self.TRACED_BOUNDS}
         for name, kind in bounds.items():
             value = getattr(self, name)
             if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value)):
@@ -115,13 +126,15 @@ class AgentConfig:
             check_real(name, value, **_BOUNDS[kind])
         if self.vanilla and not isinstance(self.cost, jax.core.Tracer) and np.any(np.asarray(self.cost)):
             raise ValueError("cost: a vanilla run has no measurement cost; allowed values: 0")
+        if not self.budgeted and not isinstance(self.budget, jax.core.Tracer) and np.any(np.asarray(self.budget)):
+            raise ValueError("budget: set budgeted=True to enforce a measurement budget (budget is ignored without)")
         check_positive_int("total_timesteps", self.total_timesteps, maximum=MAX_STEPS)
         check_positive_int("eval_every", self.eval_every, maximum=MAX_STEPS)
         check_positive_int("eval_episodes", self.eval_episodes, maximum=MAX_EPISODES)
         check_positive_int("rescore_episodes", self.rescore_episodes, maximum=MAX_EPISODES)
         for name in self.static_fields():  # network widths: tuples of positive integers
             value = getattr(self, name)
-            if isinstance(type(self).__dataclass_fields__[name].default, tuple) and (
+            if name != "extra_obs" and isinstance(type(self).__dataclass_fields__[name].default, tuple) and (
                 not isinstance(value, tuple | list) or not all(
                     isinstance(v, int | np.integer) and not isinstance(v, bool) and 1 <= v <= MAX_WIDTH
                     for v in value)):

@@ -9,6 +9,17 @@ by `mode`:
 - "noisy": the true observation + N(0, noise_std^2), clipped to the space's bounds.
 With `flag=True` a 1 (fresh) or 0 (stale) is appended to the observation. A reset, including the auto-reset inside
 `step`, counts as a free measurement of the first observation. The reward is `raw_reward - cost * measured`.
+
+Options beyond the paper (each off by default; off, the state, observation and reward are the paper's):
+- `extra_obs`: features appended after the flag, giving a memoryless agent what it cannot remember.
+  "since_measured": steps since the shown observation was measured, as log(1 + k) / log(1 + max_steps) in [0, 1];
+  "last_action": the last control action (one-hot for Discrete, the action itself for Box; zeros after a reset).
+- `budgeted`: at most `MeasureParams.budget` paid measurements per episode (traced, like the cost). A request
+  beyond it is not carried out (no cost, the stale view, `info["refused"]`), and the remaining fraction of the
+  budget is appended to the observation (after the extra features).
+- `reward_timing="on_measure"`: the raw reward of an unmeasured step is withheld and paid, summed, at the next
+  measurement or at the episode's end (for outcomes known only when looked at). `info["raw_reward"]` is what was
+  paid, so episode totals are unchanged; `info["withheld"]` is what is still owed.
 Keys: in mode "last" `step` hands its key to the inner environment unchanged (always measuring is then exactly
 the plain environment under the same keys); the other modes split it into the inner env's key and the view's.
 
@@ -31,6 +42,8 @@ from gymnax.wrappers.purerl import GymnaxWrapper
 from amjax.validation import check_bool, check_choice
 
 MODES = ("last", "random", "noisy")
+EXTRA_OBS = ("since_measured", "last_action")
+REWARD_TIMINGS = ("immediate", "on_measure")
 # gymnax writes "unbounded" as +-finfo(float32).max (e.g. CartPole's velocities); treat such bounds as infinite.
 UNBOUNDED = 1e30
 
@@ -42,14 +55,20 @@ class MeasureParams:
     env_params: Any
     cost: jax.Array  # charged per measurement, subtracted from the reward
     noise_std: jax.Array  # std of the observation noise in mode "noisy" (unused otherwise)
+    budget: Any = None  # paid measurements allowed per episode (a wrapper with budgeted=True only)
 
 
 @struct.dataclass
 class MeasureState:
-    """The inner environment's state plus the last measured observation (without the flag)."""
+    """The inner environment's state plus the last measured observation (without the flag); the options' counters
+    are None unless their option is on (no leaves, no cost)."""
 
     env_state: Any
     last_obs: jax.Array
+    since_measured: Any = None  # steps since the last measurement ("since_measured")
+    last_control: Any = None  # the last control action, one-hot for Discrete ("last_action")
+    measurements: Any = None  # paid measurements this episode (budgeted)
+    withheld: Any = None  # raw reward not yet paid (reward_timing="on_measure")
 
 
 def decode_discrete(action: jax.Array, num_controls: int) -> tuple[jax.Array, jax.Array]:
@@ -85,12 +104,21 @@ class ActiveMeasure(GymnaxWrapper):
         mode: str = "last",
         flag: bool = True,
         env_params: Any = None,
+        extra_obs: tuple[str, ...] = (),
+        budgeted: bool = False,
+        reward_timing: str = "immediate",
     ):
         super().__init__(env)
         check_choice("mode", mode, MODES)
         check_bool("flag", flag)
+        check_bool("budgeted", budgeted)
+        check_choice("reward_timing", reward_timing, REWARD_TIMINGS)
+        extra_obs = check_extra_obs(extra_obs)
         self.mode = mode
         self.flag = flag
+        self.extra_obs = extra_obs
+        self.budgeted = budgeted
+        self.reward_timing = reward_timing
         # The inner params behind `default_params` (and so behind reset/step with params=None): the registry's
         # for an id, e.g. CartPole-v0's 200-step limit, not the inner env class's own defaults.
         env_params = env.default_params if env_params is None else env_params
@@ -111,11 +139,16 @@ class ActiveMeasure(GymnaxWrapper):
                 f"env: the active-measure wrapper needs a Box observation space, got "
                 f"{type(obs_space).__name__}; allowed: Box"
             )
-        if flag and len(obs_space.shape) != 1:
+        if (flag or extra_obs or budgeted) and len(obs_space.shape) != 1:
             raise TypeError(
-                f"flag=True appends to a 1-D observation, but its shape is {obs_space.shape}; "
-                "use flag=False or flatten the observation"
+                f"flag=True (and extra_obs, budgeted) append to a 1-D observation, but its shape is "
+                f"{obs_space.shape}; use flag=False or flatten the observation"
             )
+
+    @property
+    def _appends(self) -> bool:
+        """Whether anything is appended after the flag."""
+        return bool(self.extra_obs) or self.budgeted
 
     # -- spaces -------------------------------------------------------------------------------
 
@@ -151,12 +184,31 @@ class ActiveMeasure(GymnaxWrapper):
         return low, high
 
     def observation_space(self, params: MeasureParams | None = None) -> spaces.Box:
-        low, high = self._obs_bounds(self.default_params if params is None else params)
-        if not self.flag:
-            return spaces.Box(low, high, low.shape, jnp.float32)
-        return spaces.Box(
-            jnp.append(low, 0.0), jnp.append(high, 1.0), (low.shape[0] + 1,), jnp.float32
-        )
+        params = self.default_params if params is None else params
+        low, high = self._obs_bounds(params)
+        if self.flag:
+            low, high = jnp.append(low, 0.0), jnp.append(high, 1.0)
+        if self._appends:
+            extra_low, extra_high = self._extra_bounds(params)
+            low, high = jnp.concatenate([low, extra_low]), jnp.concatenate([high, extra_high])
+        return spaces.Box(low, high, low.shape, jnp.float32)
+
+    def _extra_bounds(self, params: MeasureParams) -> tuple[jax.Array, jax.Array]:
+        """Bounds of the features appended after the flag."""
+        low, high = [], []
+        for name in self.extra_obs:
+            if name == "last_action" and isinstance(self._inner_action_space, spaces.Box):
+                inner = self._env.action_space(params.env_params)
+                low.append(jnp.broadcast_to(jnp.asarray(inner.low, jnp.float32), inner.shape))
+                high.append(jnp.broadcast_to(jnp.asarray(inner.high, jnp.float32), inner.shape))
+            else:
+                size = self.num_controls if name == "last_action" else 1
+                low.append(jnp.zeros(size))
+                high.append(jnp.ones(size))
+        if self.budgeted:
+            low.append(jnp.zeros(1))
+            high.append(jnp.ones(1))
+        return jnp.concatenate(low), jnp.concatenate(high)
 
     @property
     def default_params(self) -> MeasureParams:
@@ -164,6 +216,7 @@ class ActiveMeasure(GymnaxWrapper):
             env_params=self._env_params,
             cost=jnp.float32(0.0),
             noise_std=jnp.float32(0.0),
+            budget=jnp.float32(jnp.inf) if self.budgeted else None,
         )
 
     @property
@@ -200,6 +253,41 @@ class ActiveMeasure(GymnaxWrapper):
         noise = params.noise_std * jax.random.normal(key, true_obs.shape)
         return jnp.clip(true_obs + noise, low, high)
 
+    def _initial_counters(self) -> dict[str, Any]:
+        """The options' counters at an episode's start (None for options that are off)."""
+        zero = jnp.int32(0)
+        if "last_action" not in self.extra_obs:
+            last_control = None
+        elif isinstance(self._inner_action_space, spaces.Discrete):
+            last_control = jnp.zeros(self.num_controls, jnp.float32)
+        else:
+            last_control = jnp.zeros(self._inner_action_space.shape, jnp.float32)
+        return {
+            "since_measured": zero if "since_measured" in self.extra_obs else None,
+            "last_control": last_control,
+            "measurements": zero if self.budgeted else None,
+            "withheld": jnp.float32(0.0) if self.reward_timing == "on_measure" else None,
+        }
+
+    def _observe(self, obs: jax.Array, fresh: jax.Array, counters: dict[str, Any], params: MeasureParams) -> jax.Array:
+        """The agent's observation: `obs`, the flag, then the features the options append."""
+        obs = self._with_flag(obs, fresh)
+        if not self._appends:
+            return obs
+        features = []
+        for name in self.extra_obs:
+            if name == "since_measured":
+                horizon = jnp.asarray(params.env_params.max_steps_in_episode, jnp.float32)
+                since = jnp.log1p(counters["since_measured"].astype(jnp.float32)) / jnp.log1p(horizon)
+                features.append(jnp.minimum(since, 1.0)[None])
+            else:
+                features.append(counters["last_control"])
+        if self.budgeted:
+            used = counters["measurements"].astype(jnp.float32)
+            left = jnp.where(params.budget > 0, 1.0 - used / params.budget, 0.0)
+            features.append(jnp.clip(left, 0.0, 1.0)[None])
+        return jnp.concatenate([obs, *features])
+
     @partial(jax.jit, static_argnames=("self",))
     def reset(
         self, key: jax.Array, params: MeasureParams | None = None
@@ -207,7 +295,8 @@ class ActiveMeasure(GymnaxWrapper):
         params = self.default_params if params is None else params
         obs, env_state = self._env.reset(key, params.env_params)
         obs = jnp.asarray(obs, jnp.float32)
-        return self._with_flag(obs, True), MeasureState(env_state=env_state, last_obs=obs)
+        counters = self._initial_counters()
+        return self._observe(obs, True, counters, params), MeasureState(env_state, obs, **counters)
 
     @partial(jax.jit, static_argnames=("self",))
     def step(
@@ -223,6 +312,9 @@ class ActiveMeasure(GymnaxWrapper):
         else:
             key_env, key_view = jax.random.split(key)
         control, measured = self.split_action(action)
+        if self.budgeted:
+            requested = measured
+            measured = requested & (state.measurements < params.budget)
         obs, env_state, raw_reward, terminated, truncated, info = self._env.step(
             key_env, state.env_state, control, params.env_params
         )
@@ -233,18 +325,64 @@ class ActiveMeasure(GymnaxWrapper):
         remembered = jnp.where(measured, true_obs, state.last_obs)
         # On an episode boundary the auto-reset's first observation is a free measurement.
         reset_obs = jnp.asarray(obs, jnp.float32)
-        next_obs = self._with_flag(jnp.where(done, reset_obs, seen), done | measured)
-        next_state = MeasureState(env_state=env_state, last_obs=jnp.where(done, reset_obs, remembered))
         cost = params.cost * measured
         raw_reward = jnp.asarray(raw_reward, jnp.float32)
+        counters = self._counters_after(state, control, measured, raw_reward, done)
+        fresh_counters = self._initial_counters()
+        next_counters = jax.tree.map(lambda start, now: jnp.where(done, start, now), fresh_counters, counters)
+        if self._appends:
+            next_obs = jnp.where(
+                done, self._observe(reset_obs, True, fresh_counters, params), self._observe(seen, measured, counters,
+                                                                                         params)
+            )
+        else:  # the paper's observation, in the form XLA fuses best (see `_with_flag`)
+            next_obs = self._with_flag(jnp.where(done, reset_obs, seen), done | measured)
+        next_state = MeasureState(env_state, jnp.where(done, reset_obs, remembered), **next_counters)
+        paid = raw_reward
         info = {
             **info,
-            "final_observation": self._with_flag(seen, measured),
-            "raw_reward": raw_reward,
+            "final_observation": self._observe(seen, measured, counters, params),
             "cost": cost,
             "measured": measured,
         }
-        return next_obs, next_state, raw_reward - cost, terminated, truncated, info
+        if self.reward_timing == "on_measure":
+            owed = state.withheld + raw_reward
+            paid = jnp.where(measured | done, owed, 0.0)
+            info["withheld"] = owed - paid
+        if self.budgeted:
+            info["refused"] = requested & ~measured
+        info["raw_reward"] = paid
+        return next_obs, next_state, paid - cost, terminated, truncated, info
+
+    def _counters_after(
+        self, state: MeasureState, control: jax.Array, measured: jax.Array, raw_reward: jax.Array, done: jax.Array
+    ) -> dict[str, Any]:
+        """The options' counters after this step (before an auto-reset restarts them)."""
+        counters = self._initial_counters()
+        if counters["since_measured"] is not None:
+            counters["since_measured"] = jnp.where(measured, 0, state.since_measured + 1)
+        if counters["last_control"] is not None:
+            if isinstance(self._inner_action_space, spaces.Discrete):
+                counters["last_control"] = jax.nn.one_hot(control, self.num_controls, dtype=jnp.float32)
+            else:
+                counters["last_control"] = jnp.asarray(control, jnp.float32)
+        if counters["measurements"] is not None:
+            counters["measurements"] = state.measurements + measured.astype(jnp.int32)
+        if counters["withheld"] is not None:
+            counters["withheld"] = jnp.where(measured, 0.0, state.withheld + raw_reward)
+        return counters
+
+
+def check_extra_obs(extra_obs: Any) -> tuple[str, ...]:
+    """`extra_obs` as a tuple of distinct names from `EXTRA_OBS`; ValueError naming the allowed ones otherwise."""
+    if isinstance(extra_obs, str) or not isinstance(extra_obs, tuple | list):
+        raise ValueError(f"extra_obs: got {extra_obs!r}; allowed values: a tuple of names from {EXTRA_OBS}, "
+                         "e.g. ('since_measured',), or ()")
+    for name in extra_obs:
+        check_choice("extra_obs", name, EXTRA_OBS)
+    if len(set(extra_obs)) != len(extra_obs):
+        raise ValueError(f"extra_obs: repeated names in {list(extra_obs)}")
+    return tuple(extra_obs)
 
 
 class AlwaysMeasured(GymnaxWrapper):

@@ -26,7 +26,7 @@ from gymnasium.envs.registration import EnvSpec
 from gymnax.environments import spaces as gymnax_spaces
 
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
-from amjax.wrappers.active_measure import MODES, UNBOUNDED
+from amjax.wrappers.active_measure import MODES, REWARD_TIMINGS, UNBOUNDED, check_extra_obs
 
 __all__ = ["ActiveMeasureWrapper", "GymnasiumEnv", "gymnasium_space", "to_gymnasium"]
 
@@ -54,6 +54,14 @@ def check_measure_args(cost: Any, mode: str, flag: bool, noise_std: Any) -> tupl
     if noise_std is not None:
         raise ValueError(f"noise_std is only used with mode='noisy' (mode is {mode!r})")
     return float(cost_array), 0.0
+
+
+def _one_number(name: str, value: Any) -> float:
+    """One finite number >= 0, or ValueError naming `name`."""
+    array = check_real(name, value, low=0.0)
+    if array.ndim != 0:
+        raise ValueError(f"{name}: got {value!r}; allowed values: one finite number >= 0 (one environment)")
+    return float(array)
 
 
 def check_action(space: gym_spaces.Space, action: Any) -> Any:
@@ -130,6 +138,8 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
       mode: "last", "random" or "noisy".
       flag: append the measured flag to the observation.
       noise_std: standard deviation for mode "noisy" (required there, refused elsewhere).
+      extra_obs, budget, reward_timing: the options of `amjax.make`, with the same meaning and observation layout
+        ("since_measured" scales by the env's time limit, `env.spec.max_episode_steps`, which it then needs).
     """
 
     def __init__(
@@ -139,11 +149,22 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         mode: str = "last",
         flag: bool = True,
         noise_std: Any = None,
+        extra_obs: tuple[str, ...] = (),
+        budget: Any = None,
+        reward_timing: str = "immediate",
     ):
         super().__init__(env)
         self.cost, self.noise_std = check_measure_args(cost, mode, flag, noise_std)
         self.mode = mode
         self.flag = bool(flag)
+        self.extra_obs = check_extra_obs(extra_obs)
+        check_choice("reward_timing", reward_timing, REWARD_TIMINGS)
+        self.reward_timing = reward_timing
+        self.budget = None if budget is None else _one_number("budget", budget)
+        self._horizon = env.spec.max_episode_steps if env.spec is not None else None
+        if "since_measured" in self.extra_obs and not self._horizon:
+            raise ValueError("extra_obs: 'since_measured' scales by the episode's time limit, and this env has "
+                             "none (env.spec.max_episode_steps); wrap it in gymnasium's TimeLimit first")
         inner_action = env.action_space
         inner_obs = env.observation_space
         if isinstance(inner_action, gym_spaces.Discrete):
@@ -173,10 +194,10 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
                 f"env: the active-measure wrapper needs a Box observation space, got "
                 f"{type(inner_obs).__name__}; allowed: Box"
             )
-        if self.flag and len(inner_obs.shape) != 1:
+        if (self.flag or self.extra_obs or self.budget is not None) and len(inner_obs.shape) != 1:
             raise TypeError(
-                f"flag=True appends to a 1-D observation, but its shape is {inner_obs.shape}; "
-                "use flag=False or flatten the observation"
+                f"flag=True (and extra_obs, budget) append to a 1-D observation, but its shape is "
+                f"{inner_obs.shape}; use flag=False or flatten the observation"
             )
         with np.errstate(over="ignore"):  # float64 bounds beyond float32's range become +-inf
             self._low = inner_obs.low.astype(np.float32)
@@ -184,9 +205,39 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         low, high = self._low, self._high
         if self.flag:
             low, high = np.append(low, np.float32(0.0)), np.append(high, np.float32(1.0))
-        self.observation_space = gym_spaces.Box(low, high, dtype=np.float32)
+        for name in self.extra_obs:
+            if name == "last_action" and isinstance(inner_action, gym_spaces.Box):
+                low, high = np.append(low, inner_action.low), np.append(high, inner_action.high)
+            else:
+                size = self._num_controls if name == "last_action" else 1
+                low, high = np.append(low, np.zeros(size)), np.append(high, np.ones(size))
+        if self.budget is not None:
+            low, high = np.append(low, 0.0), np.append(high, 1.0)
+        self.observation_space = gym_spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
         self._last_obs: np.ndarray | None = None
         self._view_rng: np.random.Generator | None = None
+        self._restart_counters()
+
+    def _restart_counters(self) -> None:
+        """The options' counters at an episode's start."""
+        self._since, self._used, self._owed = 0, 0, 0.0
+        if isinstance(self._inner_action_space, gym_spaces.Discrete):
+            self._last_control = np.zeros(self._num_controls, np.float32)
+        else:
+            self._last_control = np.zeros(self._inner_action_space.shape, np.float32)
+
+    def _observe(self, obs: np.ndarray, fresh: bool) -> np.ndarray:
+        """`obs`, the flag, then the options' features (as the JAX wrapper lays them out)."""
+        features = [self._with_flag(obs, fresh)]
+        for name in self.extra_obs:
+            if name == "since_measured":
+                features.append([min(np.log1p(self._since) / np.log1p(self._horizon), 1.0)])
+            else:
+                features.append(self._last_control)
+        if self.budget is not None:
+            left = 1.0 - self._used / self.budget if self.budget > 0 else 0.0
+            features.append([min(max(left, 0.0), 1.0)])
+        return np.concatenate(features, dtype=np.float32) if len(features) > 1 else features[0]
 
     def split_action(self, action: Any) -> tuple[Any, bool]:
         """(control for the inner env, measure flag) of a wrapped action; ValueError if invalid."""
@@ -214,13 +265,16 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
                 else np.random.default_rng()
             )
         self._last_obs = np.array(obs, np.float32)  # a copy: envs may reuse their buffers
-        return self._with_flag(self._last_obs, True), info
+        self._restart_counters()
+        return self._observe(self._last_obs, True), info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Step with a wrapped action; see the class docstring for what is seen and charged."""
         if self._last_obs is None or self._view_rng is None:
             raise RuntimeError("step: call reset() before the first step")
         control, measured = self.split_action(action)
+        refused = measured and self.budget is not None and self._used >= self.budget
+        measured = measured and not refused
         obs, raw_reward, terminated, truncated, info = self.env.step(control)
         true_obs = np.array(obs, np.float32)  # a copy: envs may reuse their buffers
         if measured:
@@ -234,8 +288,22 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
             seen = np.clip(true_obs + noise, self._low, self._high).astype(np.float32)
         raw_reward = float(raw_reward)
         cost = self.cost if measured else 0.0
-        info = {**info, "raw_reward": raw_reward, "cost": cost, "measured": measured}
-        return self._with_flag(seen, measured), raw_reward - cost, terminated, truncated, info
+        self._since = 0 if measured else self._since + 1
+        self._used += measured
+        if isinstance(self._inner_action_space, gym_spaces.Discrete):
+            self._last_control = np.eye(self._num_controls, dtype=np.float32)[control - self._start]
+        else:
+            self._last_control = np.asarray(control, np.float32)
+        info = {**info, "cost": cost, "measured": measured}
+        if self.reward_timing == "on_measure":
+            self._owed += raw_reward
+            raw_reward = self._owed if (measured or terminated or truncated) else 0.0
+            self._owed -= raw_reward
+            info["withheld"] = self._owed
+        if self.budget is not None:
+            info["refused"] = refused
+        info["raw_reward"] = raw_reward
+        return self._observe(seen, measured), raw_reward - cost, terminated, truncated, info
 
 
 # -- 2. amjax / gymnax environments as Gymnasium environments -------------------------------------

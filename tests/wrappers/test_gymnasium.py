@@ -39,6 +39,8 @@ from amjax.wrappers.gymnasium import (
 )
 
 ATOL = 1e-5
+# Every option beyond the paper at once (amjax.make's and ActiveMeasureWrapper's arguments).
+OPTIONS = {"extra_obs": ("since_measured", "last_action"), "budget": 3.0, "reward_timing": "on_measure"}
 
 
 # -- fixtures and helpers ----------------------------------------------------------------------------
@@ -157,6 +159,40 @@ def test_cartpole_truncation_matches_jax_wrapper(jax_cartpole, seed: int) -> Non
         assert gym_out[3] == (t == 199) and not gym_out[2]
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_options_match_the_jax_wrapper(seed: int) -> None:
+    """Staleness features, the budget and rewards paid on measurement, step for step as the JAX wrapper's."""
+    env, params = made("CartPole-v0", cost=0.2, **OPTIONS)
+    gym_env = gym_cartpole(cost=0.2, **OPTIONS)
+    rng = np.random.default_rng(seed)
+    refused = withheld = 0
+    for episode in range(3):
+        obs, _ = gym_env.reset(seed=100 * seed + episode)
+        j_obs, state = env.reset(jax.random.key(0), params)
+        np.testing.assert_array_equal(obs[4:], np.asarray(j_obs)[4:])
+        state = state.replace(env_state=cartpole_state(gym_env, 0), last_obs=jnp.asarray(obs[:4]))
+        for t in range(200):
+            action = int(rng.integers(2)) + 2 * int(rng.random() < 0.4)
+            gym_out = gym_env.step(action)
+            jax_out = env.step(jax.random.key(t), state, action, params)
+            assert_same_step(gym_out, jax_out, 0.2)
+            info, j_info = gym_out[4], jax_out[5]
+            assert info["refused"] == bool(j_info["refused"])
+            assert info["withheld"] == pytest.approx(float(j_info["withheld"]), abs=1e-5)
+            refused, withheld = refused + info["refused"], withheld + (info["withheld"] > 0)
+            state = jax_out[1]
+            if gym_out[2] or gym_out[3]:
+                break
+    assert refused and withheld  # both options did something
+
+
+def test_since_measured_needs_a_time_limit() -> None:
+    with pytest.raises(ValueError, match="extra_obs"):
+        ActiveMeasureWrapper(SpaceEnv(gymnasium.spaces.Discrete(2)), extra_obs=("since_measured",))
+    wrapped = ActiveMeasureWrapper(SpaceEnv(gymnasium.spaces.Discrete(3)), extra_obs=("last_action",), budget=2)
+    assert wrapped.observation_space.shape == (3 + 1 + 3 + 1,)
+
+
 def test_pendulum_box_actions_match_jax_wrapper() -> None:
     env, params = made("Pendulum-v1")
     params = params.replace(cost=jnp.float32(0.3))
@@ -272,8 +308,9 @@ NOISY = {"mode": "noisy", "noise_std": 0.3}
         ("CartPole-v0", NOISY, 0.25),
         ("Acrobot-v1", {}, 0.1),
         ("Pendulum-v1", {}, 0.1),
+        ("CartPole-v0", OPTIONS, 0.2),
     ],
-    ids=["CartPole-v0", "CartPole-v0-vanilla", "CartPole-v0-noisy", "Acrobot-v1", "Pendulum-v1"],
+    ids=["CartPole-v0", "CartPole-v0-vanilla", "CartPole-v0-noisy", "Acrobot-v1", "Pendulum-v1", "options"],
 )
 def test_exported_env_passes_check_env(env_id: str, kwargs: dict, cost: float | None) -> None:
     env, params = made(env_id, **kwargs)
