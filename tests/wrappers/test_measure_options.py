@@ -21,10 +21,14 @@ N = 2  # CartPole's controls
 ALL_ON = {"extra_obs": ("since_measured", "last_action"), "budget": 2.0, "reward_timing": "on_measure"}
 
 
-def _short(params, max_steps=7):
-    inner = params.env_params if hasattr(params, "env_params") else params
-    inner = inner.replace(max_steps_in_episode=max_steps)
-    return params.replace(env_params=inner) if hasattr(params, "env_params") else inner
+def _made(**options):
+    """CartPole-v0 with 7-step episodes (many auto-resets per rollout)."""
+    env, params = amjax.make("CartPole-v0", **options)
+    return env, params.replace(env_params=params.env_params.replace(max_steps_in_episode=7))
+
+
+OPTIONS_ENV = _made(**ALL_ON)
+PLAIN_ENV = _made()
 
 
 def expected_options(actions, budget, plain):
@@ -73,9 +77,10 @@ def carried_out(actions, budget, done_after):
     cost=st.floats(0.0, 1.0, width=32),
 )
 def test_options_match_a_python_loop(rollout, seed, actions, budget, cost):
-    env, params = amjax.make("CartPole-v0", cost=cost, **{**ALL_ON, "budget": budget})
-    plain_env, plain_params = amjax.make("CartPole-v0", cost=cost)
-    params, plain_params = _short(params), _short(plain_params)
+    env, params = OPTIONS_ENV  # one env object for every example: one compiled rollout (cost, budget are traced)
+    plain_env, plain_params = PLAIN_ENV
+    params = params.replace(cost=jnp.float32(cost), budget=jnp.float32(budget))
+    plain_params = plain_params.replace(cost=jnp.float32(cost))
     key = jax.random.key(seed)
     actions = np.asarray(actions)
     run = rollout(env, params, key, jnp.asarray(actions))
