@@ -11,11 +11,9 @@ from amjax.envs.registry import make_env
 from amjax.validation import check_bool, check_choice, check_real
 from amjax.wrappers.active_measure import (
     MODES,
-    REWARD_TIMINGS,
     ActiveMeasure,
     AlwaysMeasured,
     MeasureParams,
-    check_extra_obs,
 )
 
 
@@ -57,9 +55,7 @@ def make(
             raise ValueError("vanilla=True takes no cost, mode, noise_std, extra_obs, budget or reward_timing: it "
                              "never hides a state")
         return wrap(env_id, vanilla=True)
-    check_choice("mode", mode, MODES)
-    extra_obs = check_extra_obs(extra_obs)
-    check_choice("reward_timing", reward_timing, REWARD_TIMINGS)
+    check_choice("mode", mode, MODES)  # extra_obs and reward_timing: the wrapper checks them
     if budget is not None:
         budget = check_real("budget", budget, low=0.0)
     cost = check_real("cost", cost, low=0.0)
@@ -92,7 +88,7 @@ def wrap(
     env, env_params = make_env(env_id)
     if vanilla:
         return AlwaysMeasured(env, env_params), env_params
-    wrapped = ActiveMeasure(env, mode, flag, env_params, tuple(extra_obs), budgeted, reward_timing)
+    wrapped = ActiveMeasure(env, mode, flag, env_params, extra_obs, budgeted, reward_timing)
     return wrapped, env_params
 
 

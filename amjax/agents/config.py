@@ -65,6 +65,8 @@ class AgentConfig:
 
     # The allowed range of each traced field of a subclass: "positive" (> 0), "nonnegative" (>= 0) or "unit"
     # ([0, 1]); every value must be finite.
+    # Static fields that hold network widths (a tuple of layer sizes), declared by the agents' configs.
+    WIDTH_FIELDS: ClassVar[tuple[str, ...]] = ()
     TRACED_BOUNDS: ClassVar[dict[str, str]] = {}
 
     # -- introspection ----------------------------------------------------------------------------
@@ -132,10 +134,9 @@ class AgentConfig:
         check_positive_int("eval_every", self.eval_every, maximum=MAX_STEPS)
         check_positive_int("eval_episodes", self.eval_episodes, maximum=MAX_EPISODES)
         check_positive_int("rescore_episodes", self.rescore_episodes, maximum=MAX_EPISODES)
-        for name in self.static_fields():  # network widths: tuples of positive integers
+        for name in self.WIDTH_FIELDS:  # network widths: tuples of positive integers
             value = getattr(self, name)
-            if name != "extra_obs" and isinstance(type(self).__dataclass_fields__[name].default, tuple) and (
-                not isinstance(value, tuple | list) or not all(
+            if (not isinstance(value, tuple | list) or not all(
                     isinstance(v, int | np.integer) and not isinstance(v, bool) and 1 <= v <= MAX_WIDTH
                     for v in value)):
                 raise ValueError(f"{name}: got {value!r}; allowed values: a tuple of integers in [1, {MAX_WIDTH:,}], "

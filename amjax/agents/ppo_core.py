@@ -46,6 +46,7 @@ class PPOBaseConfig(AgentConfig):
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
 
+    WIDTH_FIELDS: ClassVar[tuple[str, ...]] = ("hidden",)
     TRACED_BOUNDS: ClassVar[dict[str, str]] = {
         "learning_rate": "positive",
         "gamma": "unit",

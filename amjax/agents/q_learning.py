@@ -47,6 +47,7 @@ class QLearningConfig(AgentConfig):
     exploration_fraction: float = 0.3  # fraction of training over which epsilon decays linearly
     max_grad_norm: float = 10.0
 
+    WIDTH_FIELDS: ClassVar[tuple[str, ...]] = ("hidden",)
     TRACED_BOUNDS: ClassVar[dict[str, str]] = {
         "learning_rate": "positive",
         "gamma": "unit",

@@ -18,7 +18,7 @@ from amjax.wrappers.episode_stats import EpisodeStats
 def training_env(config: Any) -> tuple[Any, Any, int]:
     """The env a config trains and evaluates on (with episode statistics), its params (the config's cost and
     noise, traced or not) and its episode step limit."""
-    env, env_params = wrap(config.env_id, config.mode, config.flag, config.vanilla, tuple(config.extra_obs),
+    env, env_params = wrap(config.env_id, config.mode, config.flag, config.vanilla, config.extra_obs,
                            config.budgeted, config.reward_timing)
     max_steps = int(env_params.max_steps_in_episode)
     if not config.vanilla:

@@ -327,37 +327,30 @@ class ActiveMeasure(GymnaxWrapper):
         reset_obs = jnp.asarray(obs, jnp.float32)
         cost = params.cost * measured
         raw_reward = jnp.asarray(raw_reward, jnp.float32)
-        counters = self._counters_after(state, control, measured, raw_reward, done)
+        counters = self._counters_after(state, control, measured)
+        paid = raw_reward
+        if self.reward_timing == "on_measure":  # owed rewards are paid on a measurement or at the episode's end
+            owed = state.withheld + raw_reward
+            paid = jnp.where(measured | done, owed, 0.0)
+            counters["withheld"] = owed - paid
+        shown = self._observe(seen, measured, counters, params)  # the pre-reset observation
         fresh_counters = self._initial_counters()
         next_counters = jax.tree.map(lambda start, now: jnp.where(done, start, now), fresh_counters, counters)
         if self._appends:
-            next_obs = jnp.where(
-                done, self._observe(reset_obs, True, fresh_counters, params), self._observe(seen, measured, counters,
-                                                                                         params)
-            )
+            next_obs = jnp.where(done, self._observe(reset_obs, True, fresh_counters, params), shown)
         else:  # the paper's observation, in the form XLA fuses best (see `_with_flag`)
             next_obs = self._with_flag(jnp.where(done, reset_obs, seen), done | measured)
         next_state = MeasureState(env_state, jnp.where(done, reset_obs, remembered), **next_counters)
-        paid = raw_reward
-        info = {
-            **info,
-            "final_observation": self._observe(seen, measured, counters, params),
-            "cost": cost,
-            "measured": measured,
-        }
+        info = {**info, "final_observation": shown, "cost": cost, "measured": measured, "raw_reward": paid}
         if self.reward_timing == "on_measure":
-            owed = state.withheld + raw_reward
-            paid = jnp.where(measured | done, owed, 0.0)
-            info["withheld"] = owed - paid
+            info["withheld"] = counters["withheld"]
         if self.budgeted:
             info["refused"] = requested & ~measured
-        info["raw_reward"] = paid
         return next_obs, next_state, paid - cost, terminated, truncated, info
 
-    def _counters_after(
-        self, state: MeasureState, control: jax.Array, measured: jax.Array, raw_reward: jax.Array, done: jax.Array
-    ) -> dict[str, Any]:
-        """The options' counters after this step (before an auto-reset restarts them)."""
+    def _counters_after(self, state: MeasureState, control: jax.Array, measured: jax.Array) -> dict[str, Any]:
+        """The options' counters after this step (before an auto-reset restarts them); `step` sets the reward
+        owed (`withheld`)."""
         counters = self._initial_counters()
         if counters["since_measured"] is not None:
             counters["since_measured"] = jnp.where(measured, 0, state.since_measured + 1)
@@ -368,8 +361,6 @@ class ActiveMeasure(GymnaxWrapper):
                 counters["last_control"] = jnp.asarray(control, jnp.float32)
         if counters["measurements"] is not None:
             counters["measurements"] = state.measurements + measured.astype(jnp.int32)
-        if counters["withheld"] is not None:
-            counters["withheld"] = jnp.where(measured, 0.0, state.withheld + raw_reward)
         return counters
 
 

@@ -41,19 +41,14 @@ def check_measure_args(cost: Any, mode: str, flag: bool, noise_std: Any) -> tupl
     """Validate the active-measure arguments as `amjax.make` does; returns (cost, noise_std)."""
     check_choice("mode", mode, MODES)
     check_bool("flag", flag)
-    cost_array = check_real("cost", cost, low=0.0)
-    if cost_array.ndim != 0:
-        raise ValueError(f"cost: got {cost!r}; allowed values: one finite number >= 0 (one environment)")
+    cost = _one_number("cost", cost)
     if mode == "noisy":
         if noise_std is None:
             raise ValueError("noise_std: mode='noisy' needs noise_std, a finite number >= 0")
-        std_array = check_real("noise_std", noise_std, low=0.0)
-        if std_array.ndim != 0:
-            raise ValueError(f"noise_std: got {noise_std!r}; allowed values: one finite number >= 0")
-        return float(cost_array), float(std_array)
+        return cost, _one_number("noise_std", noise_std)
     if noise_std is not None:
         raise ValueError(f"noise_std is only used with mode='noisy' (mode is {mode!r})")
-    return float(cost_array), 0.0
+    return cost, 0.0
 
 
 def _one_number(name: str, value: Any) -> float:
