@@ -284,31 +284,42 @@ def test_validate_params_accepts_valid_and_batched() -> None:
 # --- exact_free_flight: the joints' fixed point, and the compacted sweeps under vmap ------------
 
 
-def test_exact_joint_solve_is_the_sweeps_fixed_point() -> None:
-    """`solve_joints_exact` equals Box2D's joint sweeps run to convergence, for every limit state and motor mode."""
-    from amjax.envs.lunar_lander.joints import joint_constraint, joint_velocity, solve_joints_exact
-
-    rng = np.random.default_rng(0)
-    n = 96
+def _free_flight_states(seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Body angles (n, 3) with the legs around their limits (lower, inside, upper), so every limit state and motor
+    mode occurs, and body velocities (n, 3, 3)."""
+    rng = np.random.default_rng(seed)
     hull = rng.normal(size=n) * 0.3
-    # Leg angles around their limits (lower, inside, upper), so every limit state and motor mode occurs.
     offsets = rng.uniform(-0.08, 0.08, (2, n)) + np.where(rng.random((2, n)) < 0.5, 0.0, 0.25)
     angles = np.stack([hull, hull + llc.JOINT_REFERENCE[0] + llc.JOINT_LOWER[0] + offsets[0],
                        hull + llc.JOINT_REFERENCE[1] + llc.JOINT_UPPER[1] - offsets[1]], 1).astype(np.float32)
-    velocities = rng.normal(size=(n, 3, 3)).astype(np.float32)
+    return angles, rng.normal(size=(n, 3, 3)).astype(np.float32)
+
+
+def _joints_at(a: jax.Array, v: jax.Array) -> tuple[list, list, tuple]:
+    """Limit states, the joints' constraints and the bodies' (vx, vy, w) of one state of `_free_flight_states`."""
+    from amjax.envs.lunar_lander.joints import joint_constraint
+
+    limit = [jnp.where(a[k + 1] - a[0] - llc.JOINT_REFERENCE[k] <= llc.JOINT_LOWER[k], llc.LIMIT_AT_LOWER,
+                       jnp.where(a[k + 1] - a[0] - llc.JOINT_REFERENCE[k] >= llc.JOINT_UPPER[k],
+                                 llc.LIMIT_AT_UPPER, llc.LIMIT_INACTIVE)) for k in range(2)]
+    joints = [joint_constraint(a[0], a[k + 1], k, limit[k]) for k in range(2)]
+    return limit, joints, tuple((v[b, 0], v[b, 1], v[b, 2]) for b in range(3))
+
+
+def test_exact_joint_solve_is_the_sweeps_fixed_point() -> None:
+    """`solve_joints_exact` equals Box2D's joint sweeps run to convergence, for every limit state and motor mode."""
+    from amjax.envs.lunar_lander.joints import joint_velocity, solve_joints_exact
+
+    angles, velocities = _free_flight_states(0, 96)
 
     def solve(a, v, sweeps):
-        limit = [jnp.where(a[k + 1] - a[0] - llc.JOINT_REFERENCE[k] <= llc.JOINT_LOWER[k], llc.LIMIT_AT_LOWER,
-                           jnp.where(a[k + 1] - a[0] - llc.JOINT_REFERENCE[k] >= llc.JOINT_UPPER[k],
-                                     llc.LIMIT_AT_UPPER, llc.LIMIT_INACTIVE)) for k in range(2)]
-        joints = [joint_constraint(a[0], a[k + 1], k, limit[k]) for k in range(2)]
-        bodies = tuple((v[b, 0], v[b, 1], v[b, 2]) for b in range(3))
+        limit, joints, bodies = _joints_at(a, v)
         zero = jnp.float32(0.0)
 
         def sweep(_, carry):
             bodies, impulses, motors = (list(x) for x in carry)
             for k in llc.JOINT_ORDER:
-                bodies[0], bodies[k + 1], impulses[k], motors[k] = joint_velocity(
+                bodies[0], bodies[k + 1], impulses[k], motors[k], _ = joint_velocity(
                     bodies[0], bodies[k + 1], joints[k], k, impulses[k], motors[k])
             return tuple(bodies), tuple(impulses), tuple(motors)
 
@@ -348,3 +359,39 @@ def test_exact_free_flight_vmapped_equals_one_env_at_a_time() -> None:
     assert 0 < int(touched.sum()) < n  # some envs, not all, had a leg on the ground: the compacted path ran
     np.testing.assert_allclose(np.asarray(obs), np.asarray(obs_one), atol=1e-3)  # rounding, grown over 110 steps
     np.testing.assert_allclose(np.asarray(reward), np.asarray(reward_one), atol=1e-2)
+
+
+def test_jumped_sweeps_equal_the_sweeps() -> None:
+    """`jump_sweeps`: the jump (a matrix power of one sweep's affine map) gives what Box2D's 180 sweeps give, where
+    its pattern check passes; where it fails, `world_step` sweeps instead."""
+    from amjax.envs.lunar_lander.world import JUMP_EXPLICIT, _gauss_seidel, _jumped_sweeps
+
+    n = 64
+    angles, velocities = _free_flight_states(1, n)
+    warm = (np.random.default_rng(2).normal(size=(n, 2, 4)) * 0.3).astype(np.float32)  # impulses (x, y, limit, motor)
+
+    def solve(a, v, w):
+        limit, joints, bodies = _joints_at(a, v)
+        jimp = tuple((w[k, 0], w[k, 1], jnp.where(limit[k] == llc.LIMIT_INACTIVE, 0.0, w[k, 2])) for k in range(2))
+        jmot = tuple(jnp.clip(w[k, 3], -llc.JOINT_MAX_IMPULSE, llc.JOINT_MAX_IMPULSE) for k in range(2))
+        swept = _gauss_seidel(bodies, joints, jimp, jmot, [], (), bodies=[], iterations=llc.VELOCITY_ITERATIONS)
+        jumped, agree = _jumped_sweeps(bodies, joints, jimp, jmot, iterations=llc.VELOCITY_ITERATIONS,
+                                       explicit=JUMP_EXPLICIT)
+        flat = [jnp.stack(jax.tree.leaves(x[:3])) for x in (swept, jumped)]
+        return flat[0], flat[1], agree
+
+    swept, jumped, agree = jax.jit(jax.vmap(solve))(angles, velocities, warm)
+    agree = np.asarray(agree)
+    assert agree.mean() > 0.5  # the jump is what runs, for most states
+    scale = np.abs(np.asarray(swept)[agree]).max()
+    np.testing.assert_allclose(np.asarray(jumped)[agree], np.asarray(swept)[agree], atol=2e-5 * scale)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [({"jump_sweeps": 1}, "jump_sweeps"), ({"exact_free_flight": "yes"}, "exact_free_flight"),
+     ({"velocity_iterations": 0}, "velocity_iterations")],
+)
+def test_solver_settings_are_checked(kwargs: dict, name: str) -> None:
+    with pytest.raises(ValueError, match=name):
+        LunarLander(**kwargs)

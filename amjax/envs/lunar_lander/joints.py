@@ -74,13 +74,22 @@ def _solve22(a11, a12, a22, bx, by):
     return det * (a22 * bx - a12 * by), det * (a11 * by - a12 * bx)
 
 
-def joint_velocity(va, vb, j, k, imp, motor):
-    """b2RevoluteJoint::SolveVelocityConstraints: motor, then limit (3x3 block) or point."""
+def joint_velocity(va, vb, j, k, imp, motor, pattern=None):
+    """b2RevoluteJoint::SolveVelocityConstraints: motor, then limit (3x3 block) or point.
+
+    Returns the bodies' velocities, the accumulated impulses and the ``pattern`` of the solve: the motor's clamp
+    (0 none, 1 at +max, 2 at -max) and whether the limit's one-sided impulse was clamped. Given a ``pattern`` the
+    solve takes those branches instead of testing them: an affine map of velocities and impulses.
+    """
     (vax, vay, wa), (vbx, vby, wb) = va, vb
     ma, mb, ia, ib = INV_MASS[0], INV_MASS[k + 1], INV_I[0], INV_I[k + 1]
     ix, iy, iz = imp
-    new_m = jnp.clip(motor - j["motor_mass"] * (wb - wa - JOINT_MOTOR_SPEED[k]),
-                     -JOINT_MAX_IMPULSE, JOINT_MAX_IMPULSE)
+    free_m = motor - j["motor_mass"] * (wb - wa - JOINT_MOTOR_SPEED[k])
+    if pattern is None:
+        motor_clamp = jnp.where(free_m > JOINT_MAX_IMPULSE, 1, jnp.where(free_m < -JOINT_MAX_IMPULSE, 2, 0))
+    else:
+        motor_clamp = pattern[0]
+    new_m = jnp.where(motor_clamp == 1, JOINT_MAX_IMPULSE, jnp.where(motor_clamp == 2, -JOINT_MAX_IMPULSE, free_m))
     dm = new_m - motor
     wa, wb = wa - ia * dm, wb + ib * dm
     c1x = vbx - wb * j["rby"] - vax + wa * j["ray"]
@@ -93,7 +102,10 @@ def joint_velocity(va, vb, j, k, imp, motor):
     px_, py_ = -(i11 * c1x + i12 * c1y), -(i12 * c1x + i22 * c1y)
     state = j["state"]
     limited = state != LIMIT_INACTIVE
-    clamp = ((state == LIMIT_AT_LOWER) & (iz + fz < 0)) | ((state == LIMIT_AT_UPPER) & (iz + fz > 0))
+    if pattern is None:
+        clamp = ((state == LIMIT_AT_LOWER) & (iz + fz < 0)) | ((state == LIMIT_AT_UPPER) & (iz + fz > 0))
+    else:
+        clamp = pattern[1]
     dx = jnp.where(limited, jnp.where(clamp, rx, fx), px_)
     dy = jnp.where(limited, jnp.where(clamp, ry, fy), py_)
     dz = jnp.where(limited, jnp.where(clamp, -iz, fz), 0.0)
@@ -102,7 +114,7 @@ def joint_velocity(va, vb, j, k, imp, motor):
     wa = wa - ia * (j["rax"] * dy - j["ray"] * dx + dz)
     vbx, vby = vbx + mb * dx, vby + mb * dy
     wb = wb + ib * (j["rbx"] * dy - j["rby"] * dx + dz)
-    return (vax, vay, wa), (vbx, vby, wb), new_imp, new_m
+    return (vax, vay, wa), (vbx, vby, wb), new_imp, new_m, (motor_clamp, clamp & limited)
 
 
 def joint_position(ca_, aa, cb_, ab, state, k):

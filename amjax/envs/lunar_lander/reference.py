@@ -19,8 +19,9 @@ from amjax.envs.lunar_lander.env import reset_from_draws, step_from_draws
 from amjax.envs.lunar_lander.state import EnvParams
 
 # Jitted once per process, shared by the replay and the tests (each compile of the solver takes seconds).
-replay_reset = jax.jit(reset_from_draws, static_argnames=("velocity_iterations", "exact_free_flight"))
-replay_step = jax.jit(step_from_draws, static_argnames=("continuous", "velocity_iterations", "exact_free_flight"))
+_SOLVER = ("velocity_iterations", "exact_free_flight", "jump_sweeps")
+replay_reset = jax.jit(reset_from_draws, static_argnames=_SOLVER)
+replay_step = jax.jit(step_from_draws, static_argnames=("continuous", *_SOLVER))
 
 def load_gymnasium_lunar_lander() -> ModuleType:
     """Gymnasium's lunar_lander module (reference for tests/benchmarks; needs ``box2d``).
@@ -62,6 +63,7 @@ def free_flight_replay(
     continuous: bool = False,
     velocity_iterations: int = VELOCITY_ITERATIONS,
     exact_free_flight: bool = False,
+    jump_sweeps: bool = False,
 ) -> dict[str, np.ndarray]:
     """Step Gymnasium and the port side by side on Gymnasium's recorded draws, random actions.
 
@@ -77,7 +79,7 @@ def free_flight_replay(
     params = EnvParams()
     obs_j, state = replay_reset(
         recorder.draws[0], np.concatenate(recorder.draws[1:3]), params,
-        velocity_iterations=velocity_iterations, exact_free_flight=exact_free_flight,
+        velocity_iterations=velocity_iterations, exact_free_flight=exact_free_flight, jump_sweeps=jump_sweeps,
     )
     obs_diff, rew_diff = [np.abs(np.asarray(obs_j) - obs_g).max()], []
     for _ in range(max_steps):
@@ -88,7 +90,7 @@ def free_flight_replay(
             break
         dispersion = np.concatenate(recorder.draws[n_draws : n_draws + 2])
         obs_j, state, rew_j, _, _ = replay_step(
-            state, action, dispersion, params, continuous, velocity_iterations, exact_free_flight
+            state, action, dispersion, params, continuous, velocity_iterations, exact_free_flight, jump_sweeps
         )
         obs_diff.append(np.abs(np.asarray(obs_j) - obs_g).max())
         rew_diff.append(abs(float(rew_j) - rew_g))

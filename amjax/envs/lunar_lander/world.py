@@ -8,6 +8,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
 
 from amjax.batching import select_compacted
 from amjax.envs.lunar_lander.collide import candidate_edges, collide_all
@@ -32,10 +33,14 @@ from amjax.envs.lunar_lander.contacts import contact_constraint, contact_positio
 from amjax.envs.lunar_lander.joints import joint_constraint, joint_position, joint_velocity, solve_joints_exact
 from amjax.envs.lunar_lander.state import EnvState
 
-# Under vmap with exact_free_flight, the envs with a leg on the ground are swept as a batch of the smallest of these
-# fractions of the envs that holds them (random actions touch the ground on ~2.4% of env-steps, at most ~7% of a
-# 256-env batch at once); when more envs touch, every env is swept.
+# Under vmap with exact_free_flight or jump_sweeps, the envs that sweep are gathered into a batch of the smallest of
+# these fractions of the envs that holds them (random actions touch the ground on ~2.4% of env-steps, at most ~7% of
+# a 256-env batch at once); when more envs sweep, every env is swept.
 CONTACT_CAPACITIES = (1 / 16, 1 / 4)
+# Sweeps run as Box2D runs them before the clamp pattern of the last one is assumed for the jump (see
+# `_jumped_sweeps`): 1.6% of free-flight steps and 4 of 10 reset steps then see the pattern change later and are
+# swept instead (Gymnasium's replays, random actions; 8 or 24 explicit sweeps did not lower the reset's rate).
+JUMP_EXPLICIT = 2
 
 
 def _materialized(it: jax.Array, fn: Callable, *operands: Any) -> Any:
@@ -72,9 +77,8 @@ def vary_together(tree: Any) -> Any:
     return jax.tree.map(vary, tree)
 
 
-def _gauss_seidel(bv, joints, jimp, jmot, arrays, cimp, *, bodies, iterations):
-    """Box2D's velocity solve: warm start (contacts, then joints), then ``iterations`` sweeps of joints then
-    contacts (b2Island::Solve order). Returns velocities and accumulated impulses."""
+def _warm_start(bv, joints, jimp, jmot, arrays, cimp, *, bodies):
+    """Velocities after applying the accumulated impulses (b2ContactSolver::WarmStart, then the joints')."""
     bv = list(bv)
     for con, b, (n1, n2, t1, t2) in zip(arrays, bodies, cimp, strict=True):
         vx, vy, w = bv[b]
@@ -93,31 +97,113 @@ def _gauss_seidel(bv, joints, jimp, jmot, arrays, cimp, *, bodies, iterations):
                  wa - INV_I[0] * (j["rax"] * iy - j["ray"] * ix + mot + iz))
         bv[k + 1] = (vbx + INV_MASS[k + 1] * ix, vby + INV_MASS[k + 1] * iy,
                      wb + INV_I[k + 1] * (j["rbx"] * iy - j["rby"] * ix + mot + iz))
-
-    def vel_iter(it, carry):
-        bv, jimp, jmot, cimp = (list(x) for x in carry)
-        for k in JOINT_ORDER:
-            bv[0], bv[k + 1], jimp[k], jmot[k] = _materialized(
-                it, lambda *ops, k=k: joint_velocity(*ops[:3], k, *ops[3:]),
-                bv[0], bv[k + 1], joints[k], jimp[k], jmot[k],
-            )
-        for idx, (con, b) in enumerate(zip(arrays, bodies, strict=True)):
-            bv[b], *new = _materialized(
-                it, lambda v, con, *imp, b=b: contact_velocity(v, {**con, "b": b}, *imp),
-                bv[b], con, *cimp[idx],
-            )
-            cimp[idx] = tuple(new)
-        return tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp)
-
-    carry = vary_together((tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp)))
-    return jax.lax.fori_loop(0, iterations, vel_iter, carry)
+    return tuple(bv)
 
 
-def _fixed_point(bv, joints, jimp, jmot, arrays, cimp):
+def _sweep(bv, joints, jimp, jmot, arrays, cimp, patterns=None, *, bodies, it):
+    """One velocity iteration: the joints, then the contacts (b2Island::Solve order), each solve
+    ``_materialized`` on the unbatched counter ``it``.
+
+    Returns velocities, impulses and the joints' clamp patterns; with ``patterns`` given, the joints take those
+    branches (without contacts the iteration is then affine in velocities and impulses).
+    """
+    bv, jimp, jmot, cimp = list(bv), list(jimp), list(jmot), list(cimp)
+    seen = [None, None]
+    for k in JOINT_ORDER:
+        bv[0], bv[k + 1], jimp[k], jmot[k], seen[k] = _materialized(
+            it, lambda *ops, k=k: joint_velocity(*ops[:3], k, *ops[3:]),
+            bv[0], bv[k + 1], joints[k], jimp[k], jmot[k], None if patterns is None else patterns[k],
+        )
+    for idx, (con, b) in enumerate(zip(arrays, bodies, strict=True)):
+        bv[b], *new = _materialized(
+            it, lambda v, con, *imp, b=b: contact_velocity(v, {**con, "b": b}, *imp),
+            bv[b], con, *cimp[idx],
+        )
+        cimp[idx] = tuple(new)
+    return tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp), tuple(seen)
+
+
+def _gauss_seidel(bv, joints, jimp, jmot, arrays, cimp, *, bodies, iterations):
+    """Box2D's velocity solve: warm start, then ``iterations`` sweeps. Returns velocities and impulses."""
+    bv = _warm_start(bv, joints, jimp, jmot, arrays, cimp, bodies=bodies)
+
+    def body(it, carry):
+        bv, jimp, jmot, cimp = carry
+        return _sweep(bv, joints, jimp, jmot, arrays, cimp, bodies=bodies, it=it)[:4]
+
+    carry = vary_together((bv, tuple(jimp), tuple(jmot), tuple(cimp)))
+    return jax.lax.fori_loop(0, iterations, body, carry)
+
+
+def _same_pattern(a: Any, b: Any) -> jax.Array:
+    return jnp.all(jnp.stack([jnp.all(x == y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)]))
+
+
+def _jumped_sweeps(bv, joints, jimp, jmot, *, iterations, explicit):
+    """Box2D's velocity solve with the run of sweeps that share one clamp pattern taken in one jump.
+
+    With every solve's branches fixed, a sweep is an affine map of the accumulated impulses (the velocities are
+    the pre-solve velocities plus the impulses' effect): ``lambda' = A lambda + c``. After ``explicit`` sweeps
+    the pattern of the last one is assumed for the rest, ``A`` is the sweep's Jacobian (forward mode over the
+    impulses, so no finite differences), and ``iterations - explicit - 1`` sweeps are the matrix power of the
+    homogeneous map, by repeated squaring. The last sweep is run as Box2D runs it. The pattern is checked by
+    running the solves untouched from the impulses after 0, 1, 2, 4, ... jumped sweeps and before the last one;
+    returns the velocities, impulses and whether every check saw the assumed pattern (where not, the caller
+    sweeps instead).
+    """
+    # An opaque zero: the solves stay behind always-taken conditionals (`_materialized`) outside a loop too.
+    solve = partial(_sweep, joints=joints, arrays=(), cimp=(), bodies=(), it=jax.lax.optimization_barrier(0))
+
+    def velocities(imp):
+        return _warm_start(bv, joints, *imp, (), (), bodies=())
+
+    def sweep(imp, patterns=None):
+        v, jimp, jmot, _, seen = solve(velocities(imp), jimp=imp[0], jmot=imp[1], patterns=patterns)
+        return (jimp, jmot), seen, v
+
+    imp = (tuple(jimp), tuple(jmot))
+    v = velocities(imp)
+    pattern = None
+    for _ in range(explicit):
+        v, *new, _, pattern = solve(v, jimp=imp[0], jmot=imp[1])
+        imp = tuple(new)
+    start, unravel = ravel_pytree(imp)
+
+    def step(x):
+        return ravel_pytree(sweep(unravel(x), pattern)[0])[0]
+
+    jacobian = jax.jacfwd(step)(start)
+    n = start.shape[0]
+    power = jnp.zeros((n + 1, n + 1), start.dtype)
+    power = power.at[:n, :n].set(jacobian).at[:n, n].set(step(start) - start).at[n, n].set(1.0)
+    jumps = iterations - explicit - 1
+    offset = jnp.zeros(n + 1, start.dtype).at[n].set(1.0)
+    checkpoints = [jnp.zeros(n, start.dtype)]
+    for bit in range(jumps.bit_length()):
+        if bit:
+            power = power @ power
+        checkpoints.append(power[:n, n])
+        if jumps >> bit & 1:
+            offset = power @ offset
+    checkpoints.append(offset[:n])
+    seen = jax.vmap(lambda y: sweep(unravel(start + y))[1])(jnp.stack(checkpoints))
+    agree = _same_pattern(seen, jax.tree.map(lambda x: jnp.broadcast_to(x, (len(checkpoints), *jnp.shape(x))), pattern))
+    (jimp, jmot), _, v = sweep(unravel(start + offset[:n]))
+    return (v, jimp, jmot), agree
+
+
+def _free_flight_fixed_point(bv, joints, jimp, jmot, arrays, cimp):
     """The velocity solve of an island without contact constraints, solved exactly (``solve_joints_exact``):
-    what the Gauss-Seidel sweeps converge to. Contact impulses are returned unchanged."""
+    what the Gauss-Seidel sweeps converge to. Contact impulses are returned unchanged. Never needs the sweeps."""
     bv, jimp, jmot = solve_joints_exact(bv, joints)
-    return vary_together((tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp)))
+    return vary_together((tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp))), jnp.bool_(False)
+
+
+def _free_flight_jump(bv, joints, jimp, jmot, arrays, cimp, *, iterations, explicit):
+    """Box2D's sweeps of an island without contact constraints, jumped (``_jumped_sweeps``); also returns
+    whether the jump's pattern check failed (the step must then be swept). Contact impulses are unchanged."""
+    (bv, jimp, jmot), agree = _jumped_sweeps(bv, joints, jimp, jmot, iterations=iterations, explicit=explicit)
+    return vary_together(((bv, jimp, jmot, tuple(cimp)), ~agree))
 
 
 def world_step(
@@ -128,13 +214,15 @@ def world_step(
     contacts: bool = True,
     velocity_iterations: int = VELOCITY_ITERATIONS,
     exact_free_flight: bool = False,
+    jump_sweeps: bool = False,
 ):
     """One b2World::Step(1/50, 180, 60): collide, solve the island, sleep bookkeeping.
 
     ``contacts=False`` (static) skips collision entirely; used for the reset step, which
     Gymnasium runs 13 m above the highest possible terrain. ``exact_free_flight`` (static) solves the
     velocities of an island without leg contacts exactly (the fixed point of the sweeps) instead of by
-    ``velocity_iterations`` sweeps, which Box2D stops before they converge.
+    ``velocity_iterations`` sweeps, which Box2D stops before they converge; ``jump_sweeps`` (static) computes
+    those sweeps' result in one checked jump (``_jumped_sweeps``).
     """
     # -- b2ContactManager::Collide at the start of the step (positions of the last step).
     if contacts:
@@ -199,16 +287,20 @@ def world_step(
     arrays = [{name: value for name, value in con.items() if name != "b"} for con, _, _ in cons]
     operands = (tuple(bv), joints, tuple(jimp), tuple(jmot), arrays, tuple(cimp))
     gauss_seidel = partial(_gauss_seidel, bodies=bodies, iterations=velocity_iterations)
-    if not exact_free_flight:
+    jump_sweeps = jump_sweeps and velocity_iterations > JUMP_EXPLICIT + 1  # else nothing to jump over
+    if not (exact_free_flight or jump_sweeps):
         bv, jimp, jmot, cimp = gauss_seidel(*operands)
-    elif not cons:
-        bv, jimp, jmot, cimp = _fixed_point(*operands)
     else:
-        # Envs with a leg on the ground sweep as Box2D does; under vmap they are gathered into a smaller batch
-        # while the rest take the joints' fixed point.
-        in_contact = jnp.any(jnp.stack([con["vcount"] > 0 for con, _, _ in cons]))
+        # A step without leg contacts takes the joints' fixed point or the jumped sweeps; the rest (a leg on the
+        # ground, or a clamp pattern that changed during the jump) sweep, gathered into a smaller batch under vmap.
+        free_flight = _free_flight_fixed_point if exact_free_flight else partial(
+            _free_flight_jump, iterations=velocity_iterations, explicit=JUMP_EXPLICIT)
+        out, sweep = free_flight(*operands)
+        if cons:
+            sweep = sweep | jnp.any(jnp.stack([con["vcount"] > 0 for con, _, _ in cons]))
         bv, jimp, jmot, cimp = select_compacted(
-            in_contact, gauss_seidel, _fixed_point, *operands, capacities=CONTACT_CAPACITIES
+            sweep, lambda *ops: gauss_seidel(*ops[:-1]), lambda *ops: ops[-1], *operands, out,
+            capacities=CONTACT_CAPACITIES,
         )
 
     # -- Store impulses per (body, edge); points beyond the solved count keep their values.
