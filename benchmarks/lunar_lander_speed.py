@@ -7,9 +7,10 @@ Random actions, auto-reset included in both. Gymnasium: one env in a Python loop
 episodes cut at 1000 steps as LunarLander-v3's TimeLimit does). The port: `env.step` vmapped over the envs inside
 a jitted `lax.scan`, the envs split over the CPU devices with `jax.shard_map` (one device per core, as
 `amjax.use_all_cores()` sets up and the sweep runner uses; default `check_vma`). Also the single-env jitted `env.step`
-called from Python (the path of notebooks and the Gymnasium bridge). Both solver settings are timed by default:
-Box2D's velocity sweeps in every env (the default env) and ``exact_free_flight=True``. Prints a markdown table
-(env-steps/s, compile time, memory) and writes it to benchmarks/results/lunar_lander_speed_<date>.md.
+called from Python (the path of notebooks and the Gymnasium bridge). Three solver settings are timed by default:
+Box2D's velocity sweeps in every env (the default env), ``jump_sweeps=True`` and ``exact_free_flight=True``.
+Prints a markdown table (env-steps/s, compile time, memory) and writes it to
+benchmarks/results/lunar_lander_speed_<date>.md.
 """
 
 from __future__ import annotations
@@ -121,7 +122,7 @@ def single_env_rate(env: LunarLander, n_steps: int) -> float:
     return n_steps / (time.perf_counter() - start)
 
 
-SOLVERS = {"sweeps": "Box2D's sweeps", "exact_free_flight": "exact_free_flight"}
+SOLVERS = {"sweeps": "Box2D's sweeps", "jump_sweeps": "jump_sweeps", "exact_free_flight": "exact_free_flight"}
 
 
 def main() -> None:
@@ -132,15 +133,15 @@ def main() -> None:
     parser.add_argument("--single-env-steps", type=int, default=2_000)
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--solvers", nargs="+", choices=SOLVERS, default=list(SOLVERS),
-                        help="the port's settings to time: Box2D's sweeps everywhere (the default env) and/or "
-                        "exact_free_flight=True")
+                        help="the port's settings to time: Box2D's sweeps everywhere (the default env), "
+                        "jump_sweeps=True and/or exact_free_flight=True")
     args = parser.parse_args()
 
     devices = jax.devices()
     gym = gymnasium_rate(args.gymnasium_steps)
     singles, rows = {}, []
     for solver in args.solvers:
-        env = LunarLander(exact_free_flight=solver == "exact_free_flight")
+        env = LunarLander(exact_free_flight=solver == "exact_free_flight", jump_sweeps=solver == "jump_sweeps")
         singles[solver] = single_env_rate(env, args.single_env_steps)
         for n in args.envs:
             n_steps = int(np.clip(args.steps_per_run // n, 20, 2000))

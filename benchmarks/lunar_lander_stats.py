@@ -22,11 +22,11 @@ from amjax.envs.lunar_lander.reference import free_flight_replay, load_gymnasium
 MAX_STEPS = 1000
 
 
-def t2_replay(n_seeds: int, exact_free_flight: bool = False) -> dict[str, float]:
+def t2_replay(n_seeds: int, **solver: bool) -> dict[str, float]:
     """Free flight on Gymnasium's recorded draws, random actions, until first ground contact."""
     obs_max, rew_max, steps = [], [], 0
     for seed in range(n_seeds):
-        out = free_flight_replay(seed, exact_free_flight=exact_free_flight)
+        out = free_flight_replay(seed, **solver)
         obs_max.append(out["obs_diff"].max())
         rew_max.append(out["reward_diff"].max(initial=0.0))
         steps += len(out["reward_diff"])
@@ -59,9 +59,9 @@ def gymnasium_heuristic(n_episodes: int) -> dict[str, np.ndarray]:
     return {"return": np.array(returns), "outcome": np.array(outcome), "length": np.array(length)}
 
 
-def jax_heuristic(n_episodes: int, seed: int = 0, exact_free_flight: bool = False) -> dict[str, np.ndarray]:
+def jax_heuristic(n_episodes: int, seed: int = 0, **solver: bool) -> dict[str, np.ndarray]:
     """The same controller in the port, all episodes vmapped, no auto-reset."""
-    env = LunarLander(exact_free_flight=exact_free_flight)
+    env = LunarLander(**solver)
     params = EnvParams()
     step = jax.vmap(env.step_env, in_axes=(0, 0, 0, None))
     policy = jax.vmap(heuristic_action)
@@ -106,9 +106,9 @@ def jax_heuristic(n_episodes: int, seed: int = 0, exact_free_flight: bool = Fals
     return {"return": np.asarray(ret), "outcome": names[np.asarray(kind)], "length": length}
 
 
-def throughput(n_envs: int = 1024, n_steps: int = 100, exact_free_flight: bool = False) -> float:
+def throughput(n_envs: int = 1024, n_steps: int = 100, **solver: bool) -> float:
     """Steps/s of env.step (gymnax auto-reset), vmapped over n_envs, random actions."""
-    env = LunarLander(exact_free_flight=exact_free_flight)
+    env = LunarLander(**solver)
     params = env.default_params
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(
         jax.random.split(jax.random.PRNGKey(0), n_envs), params
@@ -153,12 +153,14 @@ def main() -> None:
     parser.add_argument("--throughput-envs", type=int, default=1024)
     parser.add_argument("--exact-free-flight", action="store_true",
                         help="the port's LunarLander(exact_free_flight=True) instead of Box2D's sweeps everywhere")
+    parser.add_argument("--jump-sweeps", action="store_true",
+                        help="the port's LunarLander(jump_sweeps=True) instead of Box2D's sweeps everywhere")
     args = parser.parse_args()
-    exact = args.exact_free_flight
+    solver = {"exact_free_flight": args.exact_free_flight, "jump_sweeps": args.jump_sweeps}
 
     if args.replay_seeds > 0:
         start = time.perf_counter()
-        t2 = t2_replay(args.replay_seeds, exact)
+        t2 = t2_replay(args.replay_seeds, **solver)
         print(f"## T2 free-flight replay ({time.perf_counter() - start:.0f} s)\n")
         print(f"{t2['seeds']} seeds, {t2['steps']} steps compared before Gymnasium's first "
               f"contact: max |obs diff| = {t2['max_obs_diff']:.2e}, "
@@ -168,7 +170,7 @@ def main() -> None:
     rows = [summary("Gymnasium (Box2D)", gymnasium_heuristic(args.episodes))]
     t_gym = time.perf_counter() - start
     start = time.perf_counter()
-    rows.append(summary("amjax (JAX)", jax_heuristic(args.episodes, exact_free_flight=exact)))
+    rows.append(summary("amjax (JAX)", jax_heuristic(args.episodes, **solver)))
     t_jax = time.perf_counter() - start
     print(f"## T3 heuristic controller (Gymnasium {t_gym:.0f} s, JAX {t_jax:.0f} s incl. compile)\n")
     print("| env | episodes | mean return (± s.e.) | landed % | crashed % | timeout % | mean length |")
@@ -186,7 +188,7 @@ def main() -> None:
           f"{diffs['landed']:+.1f} pp, crashed {diffs['crashed']:+.1f} pp, timeout "
           f"{diffs['timeout']:+.1f} pp -> {'PASS' if ok else 'FAIL'} (targets ±10, ±5 pp)\n")
 
-    sps = throughput(args.throughput_envs, exact_free_flight=exact)
+    sps = throughput(args.throughput_envs, **solver)
     print(f"## Throughput\n\nenv.step with auto-reset, vmapped over {args.throughput_envs} envs, "
           f"{jax.devices()[0].platform}: {sps:,.0f} steps/s")
 

@@ -362,9 +362,9 @@ def test_exact_free_flight_vmapped_equals_one_env_at_a_time() -> None:
 
 
 def test_jumped_sweeps_equal_the_sweeps() -> None:
-    """`jump_sweeps`: the jump (a matrix power of one sweep's affine map) gives what Box2D's 180 sweeps give, where
-    its pattern check passes; where it fails, `world_step` sweeps instead."""
-    from amjax.envs.lunar_lander.world import JUMP_EXPLICIT, _gauss_seidel, _jumped_sweeps
+    """`jump_sweeps`: the jumps (matrix powers of one sweep's affine map) give what Box2D's 180 sweeps give where
+    they cover every sweep; where not, `world_step` sweeps instead."""
+    from amjax.envs.lunar_lander.world import JUMP_SEGMENTS, _gauss_seidel, _jumped_sweeps
 
     n = 64
     angles, velocities = _free_flight_states(1, n)
@@ -376,11 +376,19 @@ def test_jumped_sweeps_equal_the_sweeps() -> None:
         jmot = tuple(jnp.clip(w[k, 3], -llc.JOINT_MAX_IMPULSE, llc.JOINT_MAX_IMPULSE) for k in range(2))
         swept = _gauss_seidel(bodies, joints, jimp, jmot, [], (), bodies=[], iterations=llc.VELOCITY_ITERATIONS)
         jumped, agree = _jumped_sweeps(bodies, joints, jimp, jmot, iterations=llc.VELOCITY_ITERATIONS,
-                                       explicit=JUMP_EXPLICIT)
+                                       segments=JUMP_SEGMENTS)
         flat = [jnp.stack(jax.tree.leaves(x[:3])) for x in (swept, jumped)]
-        return flat[0], flat[1], agree
+        # A reset's impulses start as constants (unvarying under shard_map).
+        zero = (jnp.float32(0),) * 3
+        from_rest = _jumped_sweeps(bodies, joints, (zero, zero), zero[:2], iterations=llc.VELOCITY_ITERATIONS,
+                                   segments=JUMP_SEGMENTS)[0][0]
+        return flat[0], flat[1], agree & jnp.all(jnp.isfinite(jnp.stack(jax.tree.leaves(from_rest))))
 
-    swept, jumped, agree = jax.jit(jax.vmap(solve))(angles, velocities, warm)
+    # Inside shard_map with its default check_vma, as a user who splits envs over devices runs it.
+    spec = jax.sharding.PartitionSpec("envs")
+    mesh = jax.sharding.Mesh(np.array(jax.devices()), ("envs",))
+    sharded = jax.shard_map(jax.vmap(solve), mesh=mesh, in_specs=spec, out_specs=spec)
+    swept, jumped, agree = jax.jit(sharded)(angles, velocities, warm)
     agree = np.asarray(agree)
     assert agree.mean() > 0.5  # the jump is what runs, for most states
     scale = np.abs(np.asarray(swept)[agree]).max()

@@ -37,10 +37,9 @@ from amjax.envs.lunar_lander.state import EnvState
 # these fractions of the envs that holds them (random actions touch the ground on ~2.4% of env-steps, at most ~7% of
 # a 256-env batch at once); when more envs sweep, every env is swept.
 CONTACT_CAPACITIES = (1 / 16, 1 / 4)
-# Sweeps run as Box2D runs them before the clamp pattern of the last one is assumed for the jump (see
-# `_jumped_sweeps`): 1.6% of free-flight steps and 4 of 10 reset steps then see the pattern change later and are
-# swept instead (Gymnasium's replays, random actions; 8 or 24 explicit sweeps did not lower the reset's rate).
-JUMP_EXPLICIT = 2
+# Runs of sweeps with one clamp pattern that `_jumped_sweeps` may take per step; where more are needed the step is
+# swept instead.
+JUMP_SEGMENTS = 2
 
 
 def _materialized(it: jax.Array, fn: Callable, *operands: Any) -> Any:
@@ -139,17 +138,19 @@ def _same_pattern(a: Any, b: Any) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(x == y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)]))
 
 
-def _jumped_sweeps(bv, joints, jimp, jmot, *, iterations, explicit):
-    """Box2D's velocity solve with the run of sweeps that share one clamp pattern taken in one jump.
+def _jumped_sweeps(bv, joints, jimp, jmot, *, iterations, segments):
+    """Box2D's velocity solve of an island without contacts, each run of sweeps that share a clamp pattern taken
+    in one jump.
 
-    With every solve's branches fixed, a sweep is an affine map of the accumulated impulses (the velocities are
-    the pre-solve velocities plus the impulses' effect): ``lambda' = A lambda + c``. After ``explicit`` sweeps
-    the pattern of the last one is assumed for the rest, ``A`` is the sweep's Jacobian (forward mode over the
-    impulses, so no finite differences), and ``iterations - explicit - 1`` sweeps are the matrix power of the
-    homogeneous map, by repeated squaring. The last sweep is run as Box2D runs it. The pattern is checked by
-    running the solves untouched from the impulses after 0, 1, 2, 4, ... jumped sweeps and before the last one;
-    returns the velocities, impulses and whether every check saw the assumed pattern (where not, the caller
-    sweeps instead).
+    With the joints' branches fixed (the motor's clamp, the limit's clamp), a sweep is an affine map of the
+    accumulated impulses (the velocities are the pre-solve velocities plus the impulses' effect):
+    ``lambda' = A lambda + c``. A segment takes the pattern of the sweep from where it starts, ``A`` as that
+    sweep's Jacobian (forward mode over the impulses) and the powers ``M^(2^i)`` of the homogeneous map by repeated
+    squaring. It then finds the last sweep that still has the pattern by binary lifting (each candidate's pattern
+    checked by running the solves untouched from there; a pattern that changes once, as the reset's limit release
+    does, is found exactly), jumps there and runs that sweep. Up to ``segments`` segments cover the first
+    ``iterations - 1`` sweeps; the last one runs as Box2D runs it. Returns velocities, impulses and whether the
+    segments covered every sweep (where not, the caller sweeps instead).
     """
     # An opaque zero: the solves stay behind always-taken conditionals (`_materialized`) outside a loop too.
     solve = partial(_sweep, joints=joints, arrays=(), cimp=(), bodies=(), it=jax.lax.optimization_barrier(0))
@@ -161,35 +162,45 @@ def _jumped_sweeps(bv, joints, jimp, jmot, *, iterations, explicit):
         v, jimp, jmot, _, seen = solve(velocities(imp), jimp=imp[0], jmot=imp[1], patterns=patterns)
         return (jimp, jmot), seen, v
 
-    imp = (tuple(jimp), tuple(jmot))
-    v = velocities(imp)
-    pattern = None
-    for _ in range(explicit):
-        v, *new, _, pattern = solve(v, jimp=imp[0], jmot=imp[1])
-        imp = tuple(new)
-    start, unravel = ravel_pytree(imp)
-
-    def step(x):
-        return ravel_pytree(sweep(unravel(x), pattern)[0])[0]
-
-    jacobian = jax.jacfwd(step)(start)
+    start, unravel = ravel_pytree((tuple(jimp), tuple(jmot)))
     n = start.shape[0]
-    power = jnp.zeros((n + 1, n + 1), start.dtype)
-    power = power.at[:n, :n].set(jacobian).at[:n, n].set(step(start) - start).at[n, n].set(1.0)
-    jumps = iterations - explicit - 1
-    offset = jnp.zeros(n + 1, start.dtype).at[n].set(1.0)
-    checkpoints = [jnp.zeros(n, start.dtype)]
-    for bit in range(jumps.bit_length()):
-        if bit:
-            power = power @ power
-        checkpoints.append(power[:n, n])
-        if jumps >> bit & 1:
-            offset = power @ offset
-    checkpoints.append(offset[:n])
-    seen = jax.vmap(lambda y: sweep(unravel(start + y))[1])(jnp.stack(checkpoints))
-    agree = _same_pattern(seen, jax.tree.map(lambda x: jnp.broadcast_to(x, (len(checkpoints), *jnp.shape(x))), pattern))
-    (jimp, jmot), _, v = sweep(unravel(start + offset[:n]))
-    return (v, jimp, jmot), agree
+    levels = max(iterations - 2, 1).bit_length()  # powers 2^0 .. 2^(levels-1) reach any run of <= iterations - 2
+
+    def segment(carry):
+        impulses, left, count = carry
+        pattern = sweep(unravel(impulses))[1]
+
+        def step(x):
+            return ravel_pytree(sweep(unravel(x), pattern)[0])[0]
+
+        after = step(impulses)
+        power = jnp.zeros((n + 1, n + 1), start.dtype)
+        power = power.at[:n, :n].set(jax.jacfwd(step)(impulses)).at[:n, n].set(after - impulses).at[n, n].set(1)
+        powers = [power]
+        for _ in range(levels - 1):
+            powers.append(powers[-1] @ powers[-1])
+        powers = jnp.stack(powers)
+
+        def lift(i, lifted):
+            level = levels - 1 - i
+            taken, offset = lifted
+            candidate = powers[level] @ offset
+            ok = (taken + (1 << level) < left) & _same_pattern(sweep(unravel(impulses + candidate[:n]))[1], pattern)
+            return taken + jnp.where(ok, 1 << level, 0), jnp.where(ok, candidate, offset)
+
+        offset = jnp.zeros(n + 1, start.dtype).at[n].set(1)
+        taken, offset = jax.lax.fori_loop(0, levels, lift, vary_together((jnp.int32(0), offset, impulses))[:2])
+        # The sweep from the last checked point still has the pattern: run it; the next one starts a new segment.
+        moved = ravel_pytree(sweep(unravel(impulses + offset[:n]), pattern)[0])[0]
+        return moved, left - taken - 1, count + 1
+
+    impulses, left, _ = jax.lax.while_loop(
+        lambda carry: (carry[1] > 0) & (carry[2] < segments),
+        segment,
+        vary_together((start, jnp.int32(iterations - 1), jnp.int32(0), bv))[:3],
+    )
+    (jimp, jmot), _, v = sweep(unravel(impulses))
+    return (v, jimp, jmot), left == 0
 
 
 def _free_flight_fixed_point(bv, joints, jimp, jmot, arrays, cimp):
@@ -199,10 +210,10 @@ def _free_flight_fixed_point(bv, joints, jimp, jmot, arrays, cimp):
     return vary_together((tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp))), jnp.bool_(False)
 
 
-def _free_flight_jump(bv, joints, jimp, jmot, arrays, cimp, *, iterations, explicit):
+def _free_flight_jump(bv, joints, jimp, jmot, arrays, cimp, *, iterations, segments):
     """Box2D's sweeps of an island without contact constraints, jumped (``_jumped_sweeps``); also returns
     whether the jump's pattern check failed (the step must then be swept). Contact impulses are unchanged."""
-    (bv, jimp, jmot), agree = _jumped_sweeps(bv, joints, jimp, jmot, iterations=iterations, explicit=explicit)
+    (bv, jimp, jmot), agree = _jumped_sweeps(bv, joints, jimp, jmot, iterations=iterations, segments=segments)
     return vary_together(((bv, jimp, jmot, tuple(cimp)), ~agree))
 
 
@@ -287,14 +298,14 @@ def world_step(
     arrays = [{name: value for name, value in con.items() if name != "b"} for con, _, _ in cons]
     operands = (tuple(bv), joints, tuple(jimp), tuple(jmot), arrays, tuple(cimp))
     gauss_seidel = partial(_gauss_seidel, bodies=bodies, iterations=velocity_iterations)
-    jump_sweeps = jump_sweeps and velocity_iterations > JUMP_EXPLICIT + 1  # else nothing to jump over
+    jump_sweeps = jump_sweeps and velocity_iterations > 2  # else nothing to jump over
     if not (exact_free_flight or jump_sweeps):
         bv, jimp, jmot, cimp = gauss_seidel(*operands)
     else:
         # A step without leg contacts takes the joints' fixed point or the jumped sweeps; the rest (a leg on the
         # ground, or a clamp pattern that changed during the jump) sweep, gathered into a smaller batch under vmap.
         free_flight = _free_flight_fixed_point if exact_free_flight else partial(
-            _free_flight_jump, iterations=velocity_iterations, explicit=JUMP_EXPLICIT)
+            _free_flight_jump, iterations=velocity_iterations, segments=JUMP_SEGMENTS)
         out, sweep = free_flight(*operands)
         if cons:
             sweep = sweep | jnp.any(jnp.stack([con["vcount"] > 0 for con, _, _ in cons]))
