@@ -398,7 +398,8 @@ def test_jumped_sweeps_equal_the_sweeps() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "name"),
     [({"jump_sweeps": 1}, "jump_sweeps"), ({"exact_free_flight": "yes"}, "exact_free_flight"),
-     ({"velocity_iterations": 0}, "velocity_iterations")],
+     ({"velocity_iterations": 0}, "velocity_iterations"),
+     ({"exact_free_flight": True, "jump_sweeps": True}, "exact_free_flight and jump_sweeps")],
 )
 def test_solver_settings_are_checked(kwargs: dict, name: str) -> None:
     with pytest.raises(ValueError, match=name):

@@ -168,12 +168,12 @@ def _jumped_sweeps(bv, joints, jimp, jmot, *, iterations, segments):
 
     def segment(carry):
         impulses, left, count = carry
-        pattern = sweep(unravel(impulses))[1]
+        after, pattern, _ = sweep(unravel(impulses))  # its pattern, forced below, gives the same impulses
 
         def step(x):
             return ravel_pytree(sweep(unravel(x), pattern)[0])[0]
 
-        after = step(impulses)
+        after = ravel_pytree(after)[0]
         power = jnp.zeros((n + 1, n + 1), start.dtype)
         power = power.at[:n, :n].set(jax.jacfwd(step)(impulses)).at[:n, n].set(after - impulses).at[n, n].set(1)
         powers = [power]
@@ -205,9 +205,10 @@ def _jumped_sweeps(bv, joints, jimp, jmot, *, iterations, segments):
 
 def _free_flight_fixed_point(bv, joints, jimp, jmot, arrays, cimp):
     """The velocity solve of an island without contact constraints, solved exactly (``solve_joints_exact``):
-    what the Gauss-Seidel sweeps converge to. Contact impulses are returned unchanged. Never needs the sweeps."""
+    what the Gauss-Seidel sweeps converge to. Contact impulses are returned unchanged. Never needs the sweeps
+    (the flag is a static ``False``)."""
     bv, jimp, jmot = solve_joints_exact(bv, joints)
-    return vary_together((tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp))), jnp.bool_(False)
+    return vary_together((tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp))), False
 
 
 def _free_flight_jump(bv, joints, jimp, jmot, arrays, cimp, *, iterations, segments):
@@ -233,7 +234,7 @@ def world_step(
     Gymnasium runs 13 m above the highest possible terrain. ``exact_free_flight`` (static) solves the
     velocities of an island without leg contacts exactly (the fixed point of the sweeps) instead of by
     ``velocity_iterations`` sweeps, which Box2D stops before they converge; ``jump_sweeps`` (static) computes
-    those sweeps' result in one checked jump (``_jumped_sweeps``).
+    those sweeps' result in checked jumps (``_jumped_sweeps``).
     """
     # -- b2ContactManager::Collide at the start of the step (positions of the last step).
     if contacts:
@@ -309,10 +310,13 @@ def world_step(
         out, sweep = free_flight(*operands)
         if cons:
             sweep = sweep | jnp.any(jnp.stack([con["vcount"] > 0 for con, _, _ in cons]))
-        bv, jimp, jmot, cimp = select_compacted(
-            sweep, lambda *ops: gauss_seidel(*ops[:-1]), lambda *ops: ops[-1], *operands, out,
-            capacities=CONTACT_CAPACITIES,
-        )
+        if sweep is False:  # the exact solve of a reset step: no sweeps to compile
+            bv, jimp, jmot, cimp = out
+        else:
+            bv, jimp, jmot, cimp = select_compacted(
+                sweep, lambda *ops: gauss_seidel(*ops[:-1]), lambda *ops: ops[-1], *operands, out,
+                capacities=CONTACT_CAPACITIES,
+            )
 
     # -- Store impulses per (body, edge); points beyond the solved count keep their values.
     normal_imp, tangent_imp = ni0, ti0
