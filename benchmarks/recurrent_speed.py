@@ -6,7 +6,7 @@ reports the compile time, the env steps per second of the compiled run (all conf
 included) and the child's peak resident memory. Cases:
 
 - `drqn-old`: DRQN with the settings it had before issue 13 (4 envs, 8 steps per env between gradient phases,
-  4 gradient steps of 32 sequences, 8 + 16 steps per sequence).
+  4 gradient steps of 32 sequences, 8 + 16 steps per sequence, a 64-unit MLP under a 64-unit GRU).
 - `drqn`: DRQN with today's defaults.
 - `ppo-rnn`: recurrent PPO with its defaults.
 
@@ -29,7 +29,7 @@ from typing import Any
 
 # The settings DRQN had before issue 13 (its defaults then); every other field is today's default.
 OLD_DRQN = {"num_envs": 4, "train_freq": 8, "gradient_steps": 4, "batch_size": 32, "seq_len": 16, "burn_in": 8,
-            "buffer_size": 2_000, "learning_rate": 2e-3}
+            "buffer_size": 2_000, "learning_rate": 2e-3, "rnn_size": 64, "hidden": (64,)}
 CASES: dict[str, tuple[str, dict[str, Any]]] = {
     "drqn-old": ("drqn", OLD_DRQN),
     "drqn": ("drqn", {}),

@@ -63,13 +63,13 @@ class DRQNConfig(QLearningConfig):
     buffer_size: int = static(2_000)  # sequences (each burn_in + seq_len steps): the last 16k env steps
     batch_size: int = static(32)
     train_freq: int = static(8)  # also the stride between an env's stored sequences
-    gradient_steps: int = static(4)  # 4 x 32 sampled sequences per 128 env steps (docs/recurrent.md)
-    hidden: tuple[int, ...] = static((64,))
+    gradient_steps: int = static(4)  # 4 x 32 sampled sequences per 32 env steps (docs/recurrent.md)
+    hidden: tuple[int, ...] = static((32,))  # 32 / 32 (was 64 / 64): 2.6x faster, still ahead of DQN (docs)
     learning_rate: float = 2e-3
     exploration_fraction: float = 0.2
     seq_len: int = static(16)  # trained steps per sequence
     burn_in: int = static(8)  # steps unrolled from the stored hidden state before the trained ones
-    rnn_size: int = static(64)
+    rnn_size: int = static(32)
     cell: str = static("gru")  # "gru" or "lstm"
 
     @property

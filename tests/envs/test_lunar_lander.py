@@ -331,11 +331,13 @@ def test_exact_joint_solve_is_the_sweeps_fixed_point() -> None:
     np.testing.assert_allclose(np.asarray(exact), np.asarray(swept), atol=2e-4)
 
 
-def test_exact_free_flight_vmapped_equals_one_env_at_a_time() -> None:
-    """Under vmap the envs on the ground are swept as a compacted batch and scattered back: the batch gives what
-    each env gives alone, contacts and auto-resets included."""
-    exact = LunarLander(exact_free_flight=True)
-    params = exact.default_params
+@pytest.mark.parametrize("solver", [{}, {"exact_free_flight": True}], ids=["default", "exact_free_flight"])
+def test_vmapped_equals_one_env_at_a_time(solver) -> None:
+    """Under vmap the envs that finished an episode, the envs that need more position iterations and (with
+    exact_free_flight) the envs on the ground run as compacted batches scattered back: the batch gives what each
+    env gives alone, contacts and auto-resets included."""
+    lander = LunarLander(**solver)
+    params = lander.default_params
     n, steps = 24, 110
 
     def run(env, key, batched):
@@ -354,8 +356,8 @@ def test_exact_free_flight_vmapped_equals_one_env_at_a_time() -> None:
         return obs, reward, jnp.any(touching, axis=0)
 
     key = jax.random.PRNGKey(7)
-    obs, reward, touched = jax.jit(lambda k: run(exact, k, True))(key)
-    obs_one, reward_one, _ = jax.jit(lambda k: run(exact, k, False))(key)
+    obs, reward, touched = jax.jit(lambda k: run(lander, k, True))(key)
+    obs_one, reward_one, _ = jax.jit(lambda k: run(lander, k, False))(key)
     assert 0 < int(touched.sum()) < n  # some envs, not all, had a leg on the ground: the compacted path ran
     np.testing.assert_allclose(np.asarray(obs), np.asarray(obs_one), atol=1e-3)  # rounding, grown over 110 steps
     np.testing.assert_allclose(np.asarray(reward), np.asarray(reward_one), atol=1e-2)

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from gymnax.environments import environment, spaces
 
-from amjax.batching import uniform_cond
+from amjax.batching import select_compacted
 from amjax.envs.lunar_lander.collide import body_origins, terrain_from_heights
 from amjax.envs.lunar_lander.constants import (
     CHUNKS,
@@ -38,6 +38,10 @@ from amjax.envs.lunar_lander.constants import (
 )
 from amjax.envs.lunar_lander.state import EnvParams, EnvState
 from amjax.envs.lunar_lander.world import vary_together, world_step
+
+# Under vmap, the envs that finished an episode are reset as a batch of this fraction of the envs (random actions end
+# about 1% of episodes per step); when more are done, every env computes a reset.
+RESET_CAPACITY = 1 / 32
 
 
 # --- game logic (Gymnasium LunarLander.step) ------------------------------------------------------
@@ -293,18 +297,20 @@ class LunarLander(environment.Environment[EnvState, EnvParams]):
         """gymnax's ``Environment.step`` (same keys, same outputs) with a cheaper auto-reset.
 
         gymnax computes a reset (terrain and Gymnasium's reset physics step) on every step and selects it where
-        an episode ended; here a vmapped batch computes its resets only on steps where some member is done.
+        an episode ended; here a vmapped batch computes resets only for the members that are done, gathered into a
+        batch of ``RESET_CAPACITY`` of the envs (``select_compacted``; all envs when more are done).
         """
         params = self.default_params if params is None else params
         key_step, key_reset = jax.random.split(key)
         obs_st, state_st, reward, terminated, info = self.step_env(key_step, state, action, params)
         truncated = self.is_truncated(state_st, params)
         done = jnp.logical_or(terminated, truncated)
-        obs, state = uniform_cond(
+        obs, state = select_compacted(
             done,
             lambda key, params, _: self.reset_env(key, params),
             lambda key, params, stepped: stepped,
             key_reset, params, (obs_st, state_st),
+            capacities=(RESET_CAPACITY,),
         )
         info = {**info, "terminated": terminated, "truncated": truncated, "final_observation": obs_st}
         return obs, state, reward, terminated, truncated, info

@@ -33,10 +33,14 @@ from amjax.envs.lunar_lander.contacts import contact_constraint, contact_positio
 from amjax.envs.lunar_lander.joints import joint_constraint, joint_position, joint_velocity, solve_joints_exact
 from amjax.envs.lunar_lander.state import EnvState
 
-# Under vmap with exact_free_flight or jump_sweeps, the envs that sweep are gathered into a batch of the smallest of
-# these fractions of the envs that holds them (random actions touch the ground on ~2.4% of env-steps, at most ~7% of
-# a 256-env batch at once); when more envs sweep, every env is swept.
+# Under vmap, the envs that sweep (with exact_free_flight or jump_sweeps) and the envs that need more than
+# POSITION_ITERATIONS_FOR_ALL position iterations are gathered into a batch of the smallest of these fractions of the
+# envs that holds them (random actions touch the ground on ~5% of env-steps once episodes are at every phase);
+# when more envs need it, every env runs it.
 CONTACT_CAPACITIES = (1 / 16, 1 / 4)
+# Position iterations every env runs before, under vmap, the unsolved ones continue as a compacted batch (each env
+# runs Box2D's iterations either way).
+POSITION_ITERATIONS_FOR_ALL = 4
 # Runs of sweeps with one clamp pattern that `_jumped_sweeps` may take per step; where more are needed the step is
 # swept instead.
 JUMP_SEGMENTS = 2
@@ -339,31 +343,43 @@ def world_step(
     a = [a[b] + h * omega[b] for b in range(3)]
 
     # -- Position iterations, stopping like Box2D once contacts and joints are within slop.
-    def pos_cond(carry):
-        i, _, _, done = carry
-        return (i < POSITION_ITERATIONS) & ~done
+    limit_states = tuple(j["state"] for j in joints)
 
-    def pos_iter(carry):
+    def pos_iter(carry, consts):
         i, cs, as_, _ = carry
+        con_arrays, states = consts
         cs, as_ = list(cs), list(as_)
         min_sep = jnp.float32(0.0)
-        for con, _, _ in cons:
-            b = con["b"]
+        for con, b in zip(con_arrays, bodies, strict=True):
             for j in range(2):
-                cx, cy, as_[b], sep = contact_position(cs[b][0], cs[b][1], as_[b], con, j)
+                cx, cy, as_[b], sep = contact_position(cs[b][0], cs[b][1], as_[b], {**con, "b": b}, j)
                 cs[b] = (cx, cy)
                 min_sep = jnp.minimum(min_sep, sep)
         ok = min_sep >= -3.0 * LINEAR_SLOP
         for k in JOINT_ORDER:
             cs[0], as_[0], cs[k + 1], as_[k + 1], jok = joint_position(
-                cs[0], as_[0], cs[k + 1], as_[k + 1], joints[k]["state"], k
+                cs[0], as_[0], cs[k + 1], as_[k + 1], states[k], k
             )
             ok = ok & jok
         return i + 1, tuple(cs), tuple(as_), ok
 
-    _, cs, as_, solved = jax.lax.while_loop(
-        pos_cond, pos_iter, (jnp.int32(0), *vary_together((tuple(c), tuple(a), jnp.bool_(False))))
+    def iterate(carry, consts, limit):
+        return jax.lax.while_loop(
+            lambda carry: (carry[0] < limit) & ~carry[3], lambda carry: pos_iter(carry, consts), carry
+        )
+
+    consts = (arrays, limit_states)
+    carry = vary_together((jnp.int32(0), tuple(c), tuple(a), jnp.bool_(False)))
+    # Most envs are solved within a few iterations; under vmap the rest continue as a smaller batch (the while
+    # loop would otherwise run every env for as many iterations as the slowest one needs).
+    carry = iterate(carry, consts, POSITION_ITERATIONS_FOR_ALL)
+    carry = select_compacted(
+        (carry[0] < POSITION_ITERATIONS) & ~carry[3],
+        lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS),
+        lambda carry, consts: carry,
+        carry, consts, capacities=CONTACT_CAPACITIES,
     )
+    _, cs, as_, solved = carry
 
     # -- Sleep (b2Island::Solve with allowSleep).
     resting = (omega * omega <= ANGULAR_SLEEP_TOL**2) & (
