@@ -138,6 +138,17 @@ def _gauss_seidel(bv, joints, jimp, jmot, arrays, cimp, *, bodies, iterations):
     return jax.lax.fori_loop(0, iterations, body, carry)
 
 
+def _joints_only_gauss_seidel(iterations: int) -> Callable:
+    """``_gauss_seidel`` of an island whose contact constraints are all inactive (``vcount == 0``): their solves
+    change nothing, so only the joints are swept; contact impulses are returned unchanged."""
+
+    def solve(bv, joints, jimp, jmot, arrays, cimp):
+        bv, jimp, jmot, _ = _gauss_seidel(bv, joints, jimp, jmot, (), (), bodies=(), iterations=iterations)
+        return vary_together((bv, jimp, jmot, tuple(cimp)))
+
+    return solve
+
+
 def _same_pattern(a: Any, b: Any) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(x == y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)]))
 
@@ -305,7 +316,17 @@ def world_step(
     gauss_seidel = partial(_gauss_seidel, bodies=bodies, iterations=velocity_iterations)
     jump_sweeps = jump_sweeps and velocity_iterations > 2  # else nothing to jump over
     if not (exact_free_flight or jump_sweeps):
-        bv, jimp, jmot, cimp = gauss_seidel(*operands)
+        if not cons:  # the reset step: the joints only
+            bv, jimp, jmot, cimp = gauss_seidel(*operands)
+        else:
+            # An island without leg contacts has no contact constraints to solve (Box2D's island holds only
+            # touching contacts): those steps sweep the joints alone, with the same arithmetic; the envs with a
+            # leg on the ground sweep everything, gathered into a smaller batch under vmap.
+            touching_legs = jnp.any(jnp.stack([con["vcount"] > 0 for con, _, _ in cons]))
+            bv, jimp, jmot, cimp = select_compacted(
+                touching_legs, gauss_seidel, _joints_only_gauss_seidel(velocity_iterations), *operands,
+                capacities=CONTACT_CAPACITIES,
+            )
     else:
         # A step without leg contacts takes the joints' fixed point or the jumped sweeps; the rest (a leg on the
         # ground, or a clamp pattern that changed during the jump) sweep, gathered into a smaller batch under vmap.
@@ -372,13 +393,18 @@ def world_step(
     carry = vary_together((jnp.int32(0), tuple(c), tuple(a), jnp.bool_(False)))
     # Most envs are solved within a few iterations; under vmap the rest continue as a smaller batch (the while
     # loop would otherwise run every env for as many iterations as the slowest one needs).
-    carry = iterate(carry, consts, POSITION_ITERATIONS_FOR_ALL)
-    carry = select_compacted(
-        (carry[0] < POSITION_ITERATIONS) & ~carry[3],
-        lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS),
-        lambda carry, consts: carry,
-        carry, consts, capacities=CONTACT_CAPACITIES,
-    )
+    # The reset step (no contacts) runs on its own compacted batch of done envs, or on every env at once: there the
+    # loop runs plainly, which also keeps the compiled program smaller.
+    if contacts:
+        carry = iterate(carry, consts, POSITION_ITERATIONS_FOR_ALL)
+        carry = select_compacted(
+            (carry[0] < POSITION_ITERATIONS) & ~carry[3],
+            lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS),
+            lambda carry, consts: carry,
+            carry, consts, capacities=CONTACT_CAPACITIES,
+        )
+    else:
+        carry = iterate(carry, consts, POSITION_ITERATIONS)
     _, cs, as_, solved = carry
 
     # -- Sleep (b2Island::Solve with allowSleep).
