@@ -363,6 +363,38 @@ def test_vmapped_equals_one_env_at_a_time(solver) -> None:
     np.testing.assert_allclose(np.asarray(reward), np.asarray(reward_one), atol=1e-2)
 
 
+def test_free_flight_sweeps_the_joints_alone() -> None:
+    """A step without leg contacts sweeps only the joints (`_joints_only_gauss_seidel`), as Box2D's island holds
+    only touching contacts: the full sweeps, with the six inactive contact solves in them, give the same result."""
+    from amjax.envs.lunar_lander.contacts import contact_constraint
+    from amjax.envs.lunar_lander.world import _gauss_seidel, _joints_only_gauss_seidel
+
+    n = 32
+    angles, velocities = _free_flight_states(3, n)
+    rng = np.random.default_rng(4)
+    warm = (rng.normal(size=(n, 2, 4)) * 0.3).astype(np.float32)
+    contact_warm = (rng.normal(size=(n, 6, 4)) * 0.3).astype(np.float32)
+
+    def solve(a, v, w, cw):
+        limit, joints, bodies = _joints_at(a, v)
+        jimp = tuple((w[k, 0], w[k, 1], jnp.where(limit[k] == llc.LIMIT_INACTIVE, 0.0, w[k, 2])) for k in range(2))
+        jmot = tuple(jnp.clip(w[k, 3], -llc.JOINT_MAX_IMPULSE, llc.JOINT_MAX_IMPULSE) for k in range(2))
+        cons = [contact_constraint(b, jnp.int32(0), jnp.bool_(True), jnp.array([0.0, 1.0]), jnp.zeros(2),
+                                   jnp.zeros((2, 2)), (10.0, 5.0), a[b])
+                for b in llc.CONTACT_BODY_ORDER for _ in range(2)]
+        bodies_of = [con.pop("b") for con in cons]
+        cimp = tuple(tuple(cw[i]) for i in range(len(cons)))
+        operands = (bodies, joints, jimp, jmot, cons, cimp)
+        full = _gauss_seidel(*operands, bodies=bodies_of, iterations=llc.VELOCITY_ITERATIONS)
+        alone = _joints_only_gauss_seidel(llc.VELOCITY_ITERATIONS)(*operands)
+        return [jnp.stack(jax.tree.leaves(x)) for x in (full, alone)]
+
+    full, alone = jax.jit(jax.vmap(solve))(angles, velocities, warm, contact_warm)
+    assert np.all(np.isfinite(np.asarray(full)))
+    scale = np.abs(np.asarray(full)).max()
+    np.testing.assert_allclose(np.asarray(alone), np.asarray(full), atol=1e-6 * scale)
+
+
 def test_jumped_sweeps_equal_the_sweeps() -> None:
     """`jump_sweeps`: the jumps (matrix powers of one sweep's affine map) give what Box2D's 180 sweeps give where
     they cover every sweep; where not, `world_step` sweeps instead."""
