@@ -321,6 +321,7 @@ def test_cli_sweep_starts_each_env_from_its_tuned_defaults():
     assert configs["Acrobot-v1", "ppo"].ent_coef == pytest.approx(0.05)  # --set wins
     assert configs["CartPole-v0", "ppo"].reward_scale == 1.0
     assert (configs["Acrobot-v1", "dqn"].hidden, configs["Acrobot-v1", "dqn"].n_step) == ((128, 128), 3)  # ACROBOT_DQN
+    assert configs["Acrobot-v1", "ppo"].hidden == (128, 128) and configs["CartPole-v0", "ppo"].hidden == (64, 64)
     assert (configs["CartPole-v0", "dqn"].hidden, configs["CartPole-v0", "dqn"].n_step) == ((64, 64), 10)
     args = build_parser().parse_args(["sweep", "--env", "Acrobot-v1", "--agent", "ppo", "--no-env-defaults",
                                       "--out", "x"])
