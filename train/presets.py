@@ -73,28 +73,30 @@ LUNAR_LANDER_PPO: dict[str, object] = {
 # and PPO's value clipping (clip_eps = 0.2 in reward units per update) keeps the critic far behind them; the
 # advantages are then the next few steps' rewards, where the one visible effect of a measurement is its cost, and
 # under a cost of 0.2 or more PPO stops measuring and never reaches the goal. Scaled rewards keep the critic close.
-# A 128x128 torso (run 7 there, seeds 100-105) then gained 5-7 points at every cost over 64x64 and measured less at
-# cost 0.1 (70% of steps, against 99%).
+# A 128x128 torso (run 7 there) controls the swing-up better than 64x64 at every cost.
 ACROBOT_PPO: dict[str, object] = {
     "reward_scale": 0.1,
     "ent_coef": 0.0,
     "hidden": (128, 128),
 }
-# Dueling DQN on Acrobot-v1 (tuning runs in docs/acrobot.md): a wider torso and 3-step returns control the
-# swing-up from stale views better than the CartPole defaults (64x64, 10-step returns): seeds 100-105, 128x128 with
-# 3-step returns scored -77.1 / -84.6 / -89.0 at costs 0.1 / 0.2 / 0.3 (re-scored -83.7 / -91.2 / -97.1), where
-# 64x64 with 3-step returns collapsed at cost 0.3 on half the seeds. 256x256 did as well at cost 0.2 but trains
-# about 12x slower than 64x64 on 2 CPU cores (compute-bound: 6.8 k env-steps/s for 40 configurations); 128x128
-# about 3x (27 k).
+# Dueling DQN on Acrobot-v1 (tuning runs 5-6 in docs/acrobot.md): a wider torso and 3-step returns control the
+# swing-up from stale views better than the CartPole defaults (64x64, 10-step returns). 128x128, not 256x256: the
+# wider one scored within these runs' noise of it and trains about 4x slower on CPU (the torso's matmuls bound it).
 ACROBOT_DQN: dict[str, object] = {
     "hidden": (128, 128),
     "n_step": 3,
 }
+
+
+def scoped(agent: str, values: dict[str, object]) -> dict[str, object]:
+    """`values` as hyperparameters of `agent` only ("agent.field": value)."""
+    return {f"{agent}.{name}": value for name, value in values.items()}
+
+
 # Per-environment hyperparameters on top of each agent's defaults ("agent.field": value).
 REPLICATE_HYPERPARAMS: dict[str, dict[str, object]] = {
-    "Acrobot-v1": {f"ppo.{name}": value for name, value in ACROBOT_PPO.items()}
-    | {f"dqn.{name}": value for name, value in ACROBOT_DQN.items()},
-    "LunarLander-v3": {f"ppo.{name}": value for name, value in LUNAR_LANDER_PPO.items()},
+    "Acrobot-v1": scoped("ppo", ACROBOT_PPO) | scoped("dqn", ACROBOT_DQN),
+    "LunarLander-v3": scoped("ppo", LUNAR_LANDER_PPO),
 }
 
 
