@@ -23,6 +23,7 @@ import datetime
 import os
 import platform
 import resource
+import sys
 import time
 from pathlib import Path
 
@@ -37,7 +38,8 @@ amjax.use_all_cores()  # one CPU device per core, before the imports below start
 from amjax.envs.lunar_lander import LunarLander  # noqa: E402
 from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander  # noqa: E402
 
-RESULTS = Path(__file__).parent / "results"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
+from benchmarks.throughput.report import save_table  # noqa: E402
 
 
 def gymnasium_rate(n_steps: int, seed: int = 0) -> float:
@@ -179,11 +181,7 @@ def main() -> None:
             f"{r['rate'] / gym:.1f}x | {r['compile_s']:.1f} | {r['program_mib']:.1f} | {r['rss_mib']:,.0f} |"
         )
     table = "\n".join(lines) + "\n"
-    print(table)
-    out = args.out or RESULTS / f"lunar_lander_speed_{datetime.date.today()}.md"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(table)
-    print(f"written to {out}")
+    save_table(table, args.out, "lunar_lander_speed")
 
 
 if __name__ == "__main__":

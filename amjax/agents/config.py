@@ -68,6 +68,8 @@ class AgentConfig:
     # Static fields that hold network widths (a tuple of layer sizes), declared by the agents' configs.
     WIDTH_FIELDS: ClassVar[tuple[str, ...]] = ()
     TRACED_BOUNDS: ClassVar[dict[str, str]] = {}
+    # The env action spaces (gymnax space class names) the agent handles.
+    ACTION_SPACES: ClassVar[tuple[str, ...]] = ("Discrete",)
 
     # -- introspection ----------------------------------------------------------------------------
 
@@ -110,7 +112,13 @@ class AgentConfig:
         """Check every field on concrete values (before compiling); returns self. The agent's own fields
         (`check_fields`) are checked first, then the environment, the traced fields and the schedule."""
         self.check_fields()
-        make_env(self.env_id)  # raises on an unknown id, listing the known ones
+        env, env_params = make_env(self.env_id)  # raises on an unknown id, listing the known ones
+        space = type(env.action_space(env_params)).__name__
+        if space not in self.ACTION_SPACES:
+            raise ValueError(
+                f"env_id: {self.env_id} has a {space} action space; {type(self).__name__} handles "
+                f"{' and '.join(self.ACTION_SPACES)} (for Box control use PPO: agent ppo or ppo-rnn)"
+            )
         check_choice("mode", self.mode, MODES)
         check_bool("flag", self.flag)
         check_bool("vanilla", self.vanilla)

@@ -64,8 +64,8 @@ class DQNState:
     env_steps: jax.Array
 
 
-def network(config: DQNConfig, num_actions: int) -> DuelingQNetwork:
-    return DuelingQNetwork(num_actions, tuple(config.hidden), config.activation, config.dueling)
+def network(config: DQNConfig, action_space: Any) -> DuelingQNetwork:
+    return DuelingQNetwork(action_space.n, tuple(config.hidden), config.activation, config.dueling)
 
 
 def _example_item(envs: EnvBatch) -> dict[str, jax.Array]:

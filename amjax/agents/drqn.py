@@ -107,9 +107,9 @@ class DRQNState:
     env_steps: jax.Array
 
 
-def network(config: DRQNConfig, num_actions: int) -> RecurrentQNetwork:
+def network(config: DRQNConfig, action_space: Any) -> RecurrentQNetwork:
     return RecurrentQNetwork(
-        num_actions, tuple(config.hidden), config.rnn_size, config.cell, config.activation, config.dueling
+        action_space.n, tuple(config.hidden), config.rnn_size, config.cell, config.activation, config.dueling
     )
 
 

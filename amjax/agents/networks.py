@@ -14,6 +14,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from amjax.agents.policies import Categorical, Distribution, GaussianOutputs
+
 ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu, "elu": nn.elu}
 
 
@@ -71,21 +73,36 @@ class NarrowDense(nn.Module):
         return _narrow_matmul(x, kernel) + bias
 
 
-class ActorCritic(nn.Module):
-    """Categorical policy logits and a state value; separate torsos unless `shared`."""
+def policy_head(module: nn.Module, x: jax.Array, distribution: Distribution, dense: type[nn.Module] = nn.Dense) -> Any:
+    """The parameters of `distribution` from features `x`, as layers of `module` (call inside its compact
+    `__call__`): logits for a `Categorical` (layer "logits"), `GaussianOutputs` for a `HybridGaussian` (layers
+    "mean" and "measure_logit", parameter "log_std", initialised to 0). Small initial weights start every policy
+    near uniform (measuring with probability 1/2)."""
+    if isinstance(distribution, Categorical):
+        return dense(distribution.num_actions, kernel_init=scaled_init(0.01), name="logits")(x)
+    mean = dense(distribution.controls, kernel_init=scaled_init(0.01), name="mean")(x)
+    log_std = module.param("log_std", nn.initializers.zeros_init(), (distribution.controls,), jnp.float32)
+    measure_logit = None
+    if distribution.measure:
+        measure_logit = dense(1, kernel_init=scaled_init(0.01), name="measure_logit")(x)[..., 0]
+    return GaussianOutputs(mean, jnp.broadcast_to(log_std, mean.shape), measure_logit)
 
-    num_actions: int
+
+class ActorCritic(nn.Module):
+    """A policy head for `distribution` (see policies.py) and a state value; separate torsos unless `shared`."""
+
+    distribution: Distribution
     hidden: Sequence[int] = (64, 64)
     activation: str = "tanh"
     shared: bool = False
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def __call__(self, obs: jax.Array) -> tuple[Any, jax.Array]:
         actor = MLP(self.hidden, self.activation, name="actor_torso")(obs)
         critic = actor if self.shared else MLP(self.hidden, self.activation, name="critic_torso")(obs)
-        logits = NarrowDense(self.num_actions, kernel_init=scaled_init(0.01), name="logits")(actor)
+        policy = policy_head(self, actor, self.distribution, dense=NarrowDense)
         value = nn.Dense(1, kernel_init=scaled_init(1.0), name="value")(critic)
-        return logits, jnp.squeeze(value, -1)
+        return policy, jnp.squeeze(value, -1)
 
 
 class DuelingQNetwork(nn.Module):
@@ -203,15 +220,15 @@ class DuelingHead(nn.Module):
 
 
 class ActorCriticHeads(nn.Module):
-    """Categorical policy logits and a state value from shared features."""
+    """A policy head for `distribution` and a state value from shared features."""
 
-    num_actions: int
+    distribution: Distribution
 
     @nn.compact
-    def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-        logits = nn.Dense(self.num_actions, kernel_init=scaled_init(0.01), name="logits")(x)
+    def __call__(self, x: jax.Array) -> tuple[Any, jax.Array]:
+        policy = policy_head(self, x, self.distribution)
         value = nn.Dense(1, kernel_init=scaled_init(1.0), name="value")(x)
-        return logits, jnp.squeeze(value, -1)
+        return policy, jnp.squeeze(value, -1)
 
 
 class RecurrentQNetwork(nn.Module):
@@ -239,10 +256,10 @@ class RecurrentQNetwork(nn.Module):
 
 
 class RecurrentActorCritic(nn.Module):
-    """One recurrent core shared by a categorical policy head and a value head; one step -> (carry, (logits,
-    value)); `unroll` -> (carries, (logits, values)) of a sequence."""
+    """One recurrent core shared by a policy head for `distribution` and a value head; one step -> (carry,
+    (policy, value)); `unroll` -> (carries, (policy, values)) of a sequence."""
 
-    num_actions: int
+    distribution: Distribution
     hidden: Sequence[int] = (64,)
     rnn_size: int = 64
     cell: str = "gru"
@@ -250,7 +267,7 @@ class RecurrentActorCritic(nn.Module):
 
     def setup(self) -> None:
         self.core = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)
-        self.heads = ActorCriticHeads(self.num_actions)
+        self.heads = ActorCriticHeads(self.distribution)
 
     def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, tuple[jax.Array, jax.Array]]:
         carry, x = self.core(carry, obs, first)

@@ -17,6 +17,7 @@ from flax import struct
 from amjax.agents.config import static
 from amjax.agents.networks import ActorCritic
 from amjax.agents.optim import minibatch_step
+from amjax.agents.policies import for_action_space
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
     clipped_loss,
@@ -55,8 +56,9 @@ class PPOState:
     updates: jax.Array
 
 
-def network(config: PPOConfig, num_actions: int) -> ActorCritic:
-    return ActorCritic(num_actions, tuple(config.hidden), config.activation, config.shared_network)
+def network(config: PPOConfig, action_space: Any) -> ActorCritic:
+    distribution = for_action_space(action_space, measure=not config.vanilla)
+    return ActorCritic(distribution, tuple(config.hidden), config.activation, config.shared_network)
 
 
 def init(config: PPOConfig, setup: Setup, key: jax.Array) -> PPOState:
@@ -77,19 +79,20 @@ def _group_size(rows: int, width: int) -> int:
 
 def update(config: PPOConfig, setup: Setup, state: PPOState) -> tuple[PPOState, UpdateStats]:
     network = setup.network
+    distribution = network.distribution
     rollout_key, epoch_key, key = jax.random.split(fast_key(state.key), 3)
     width = max(config.hidden, default=1)
 
     # 1. Collect a rollout with the current stochastic policy. Only the policy runs step by step (XLA drops the
     #    unused critic); log-probabilities and values come after the rollout from the same parameters, batched.
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        logits, _ = network.apply(state.params, batch.obs)
-        return jax.random.categorical(key, logits), carry, logits
+        policy, _ = network.apply(state.params, batch.obs)
+        return distribution.sample(key, policy), carry, policy
 
-    envs, _, transitions, logits = rollout(
+    envs, _, transitions, policies = rollout(
         setup.env, setup.env_params, state.envs, None, act, rollout_key, config.num_steps
     )
-    log_probs = jnp.take_along_axis(jax.nn.log_softmax(logits), transitions.action[..., None], -1)[..., 0]
+    log_probs = distribution.log_prob(policies, transitions.action)
 
     # 2. Advantages: V(obs) and V(pre-reset next obs) (the latter handles truncation) in one pass, in chunks of
     #    about 256 rows (one [T, E] pass would stream megabytes per op).
@@ -112,7 +115,7 @@ def update(config: PPOConfig, setup: Setup, state: PPOState) -> tuple[PPOState, 
 
         def loss_fn(params, minibatch):
             obs, *rest = minibatch
-            return clipped_loss(config, *network.apply(params, obs), *rest)
+            return clipped_loss(config, distribution, *network.apply(params, obs), *rest)
 
         step = minibatch_step(optimizer, loss_fn)
 
@@ -137,7 +140,7 @@ def update(config: PPOConfig, setup: Setup, state: PPOState) -> tuple[PPOState, 
 
 
 def greedy(config: PPOConfig, setup: Setup, params: Any, num_envs: int):
-    return greedy_policy(lambda obs: setup.network.apply(params, obs)[0])
+    return greedy_policy(lambda obs: setup.network.apply(params, obs)[0], setup.network.distribution.mode)
 
 
 PPO = Algorithm("ppo", PPOConfig, network, init, update, greedy, params=lambda state: state.params)

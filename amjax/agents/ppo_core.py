@@ -20,6 +20,7 @@ from flax import struct
 
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.optim import clipped_adam
+from amjax.agents.policies import Distribution
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 
 
@@ -47,6 +48,7 @@ class PPOBaseConfig(AgentConfig):
     max_grad_norm: float = 0.5
 
     WIDTH_FIELDS: ClassVar[tuple[str, ...]] = ("hidden",)
+    ACTION_SPACES: ClassVar[tuple[str, ...]] = ("Discrete", "Box")  # categorical or Gaussian + Bernoulli head
     TRACED_BOUNDS: ClassVar[dict[str, str]] = {
         "learning_rate": "positive",
         "gamma": "unit",
@@ -124,7 +126,8 @@ def rollout_advantages(config: PPOBaseConfig, transitions: Any, values: jax.Arra
 
 def clipped_loss(
     config: Any,
-    logits: jax.Array,
+    distribution: Distribution,
+    policy: Any,
     value: jax.Array,
     action: jax.Array,
     old_log_prob: jax.Array,
@@ -133,10 +136,10 @@ def clipped_loss(
     target: jax.Array,
 ) -> jax.Array:
     """The PPO loss on a batch of any shape [...]: clipped policy objective (advantages normalised over the
-    batch) + vf_coef x value loss (clipped if `config.clip_value`) - ent_coef x entropy. `config` supplies
-    clip_eps, clip_value, vf_coef, ent_coef."""
-    log_softmax = jax.nn.log_softmax(logits)
-    log_prob = jnp.take_along_axis(log_softmax, action[..., None], -1)[..., 0]
+    batch) + vf_coef x value loss (clipped if `config.clip_value`) - ent_coef x entropy. `policy` holds the
+    parameters of `distribution` (policies.py) for the batch; `config` supplies clip_eps, clip_value, vf_coef,
+    ent_coef."""
+    log_prob = distribution.log_prob(policy, action)
     value_loss = (value - target) ** 2
     if config.clip_value:
         value_clipped = old_value + jnp.clip(value - old_value, -config.clip_eps, config.clip_eps)
@@ -148,7 +151,7 @@ def clipped_loss(
         ratio * advantage,
         jnp.clip(ratio, 1.0 - config.clip_eps, 1.0 + config.clip_eps) * advantage,
     ).mean()
-    entropy = -(jnp.exp(log_softmax) * log_softmax).sum(-1).mean()
+    entropy = distribution.entropy(policy).mean()
     return policy_loss + config.vf_coef * value_loss - config.ent_coef * entropy
 
 

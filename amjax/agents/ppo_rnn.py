@@ -22,6 +22,7 @@ from flax import struct
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import CELLS, RecurrentActorCritic, zero_carry
 from amjax.agents.optim import minibatch_step
+from amjax.agents.policies import for_action_space
 from amjax.agents.ppo_core import PPOBaseConfig, clipped_loss, make_optimizer, rollout_advantages, shuffle
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
@@ -67,8 +68,9 @@ class PPORNNState:
     updates: jax.Array
 
 
-def network(config: PPORNNConfig, num_actions: int) -> RecurrentActorCritic:
-    return RecurrentActorCritic(num_actions, tuple(config.hidden), config.rnn_size, config.cell, config.activation)
+def network(config: PPORNNConfig, action_space: Any) -> RecurrentActorCritic:
+    distribution = for_action_space(action_space, measure=not config.vanilla)
+    return RecurrentActorCritic(distribution, tuple(config.hidden), config.rnn_size, config.cell, config.activation)
 
 
 def init(config: PPORNNConfig, setup: Setup, key: jax.Array) -> PPORNNState:
@@ -85,11 +87,12 @@ def collect(
     """Roll out `num_steps` steps with the stochastic policy. Returns the final envs and carry, the transitions
     [T, E] and per step (log-probability, value, `first` flag, carry after the step)."""
 
+    distribution = setup.network.distribution
+
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        carry, (logits, value) = setup.network.apply(params, carry, batch.obs, batch.first)
-        action = jax.random.categorical(key, logits)
-        log_prob = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], -1)[:, 0]
-        return action, carry, (log_prob, value, batch.first, carry)
+        carry, (policy, value) = setup.network.apply(params, carry, batch.obs, batch.first)
+        action = distribution.sample(key, policy)
+        return action, carry, (distribution.log_prob(policy, action), value, batch.first, carry)
 
     return rollout(setup.env, setup.env_params, envs, carry, act, key, config.num_steps)
 
@@ -97,9 +100,9 @@ def collect(
 def unroll_sequences(
     net: RecurrentActorCritic, params: Any, start: Any, obs: jax.Array, first: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
-    """Policy logits and values [T, E, ...] of time-major sequences re-unrolled from their initial carries."""
-    _, (logits, value) = net.apply(params, start, obs, first, method="unroll")
-    return logits, value
+    """Policy parameters and values [T, E, ...] of time-major sequences re-unrolled from their initial carries."""
+    _, (policy, value) = net.apply(params, start, obs, first, method="unroll")
+    return policy, value
 
 
 def update(config: PPORNNConfig, setup: Setup, state: PPORNNState) -> tuple[PPORNNState, UpdateStats]:
@@ -121,7 +124,7 @@ def update(config: PPORNNConfig, setup: Setup, state: PPORNNState) -> tuple[PPOR
 
     def loss_fn(params, minibatch):
         start, (obs, first, *rest) = minibatch
-        return clipped_loss(config, *unroll_sequences(net, params, start, obs, first), *rest)
+        return clipped_loss(config, net.distribution, *unroll_sequences(net, params, start, obs, first), *rest)
 
     step = minibatch_step(optimizer, loss_fn)
 
@@ -142,8 +145,8 @@ def greedy(config: PPORNNConfig, setup: Setup, params: Any, num_envs: int):
     """The most probable action, carrying the hidden state; a zero hidden state for `num_envs` test envs."""
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        carry, (logits, _) = setup.network.apply(params, carry, batch.obs, batch.first)
-        return jnp.argmax(logits, -1), carry, None
+        carry, (policy, _) = setup.network.apply(params, carry, batch.obs, batch.first)
+        return setup.network.distribution.mode(policy), carry, None
 
     return act, zero_carry(config.cell, config.rnn_size, (num_envs,))
 

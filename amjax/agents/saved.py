@@ -74,8 +74,8 @@ def _evaluate(agent: str, config: AgentConfig, params: Any, key: jax.Array, num_
 
 
 class Actor:
-    """`actor(obs) -> int action` for one env, step by step; `reset()` at each episode start (recurrent agents
-    start from a zero hidden state, as in training)."""
+    """`actor(obs) -> action` for one env, step by step (an int for a Discrete env, a float32 NumPy array for a
+    Box one); `reset()` at each episode start (recurrent agents start from a zero hidden state, as in training)."""
 
     def __init__(self, saved: SavedPolicy):
         act, self._initial = saved.policy(num_envs=1)
@@ -90,10 +90,10 @@ class Actor:
     def reset(self) -> None:
         self._carry, self._first = self._initial, True
 
-    def __call__(self, obs: Any) -> int:
+    def __call__(self, obs: Any) -> int | np.ndarray:
         action, self._carry = self._step(jnp.asarray(obs, jnp.float32), self._carry, jnp.bool_(self._first))
         self._first = False
-        return int(action)
+        return int(action) if action.ndim == 0 else np.asarray(action)
 
 
 def save_policy(path: str | Path, config: AgentConfig, params: Any, info: dict[str, Any] | None = None) -> Path:

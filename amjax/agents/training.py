@@ -1,6 +1,6 @@
 """The training driver every algorithm shares: updates -> periodic greedy evaluation -> reduced metrics.
 
-An algorithm supplies `network(config, num_actions)`, `init(config, setup, key)`, `update(config, setup, state)`
+An algorithm supplies `network(config, action_space)`, `init(config, setup, key)`, `update(config, setup, state)`
 (one iteration: collect + learn), `params(state)` (its network parameters) and `greedy(config, setup, params,
 num_envs)` (its evaluation policy). `Algorithm.setup(config)` builds the env and network once per compiled program
 and every function gets them. The driver scans `updates_per_eval` updates, evaluates `eval_episodes` test episodes,
@@ -102,7 +102,7 @@ class Algorithm:
 
     name: str
     config_type: type[AgentConfig]
-    network: Callable[[AgentConfig, int], nn.Module]  # (config, num_actions) -> its network
+    network: Callable[[AgentConfig, Any], nn.Module]  # (config, env action space) -> its network
     init: Callable[[AgentConfig, Setup, jax.Array], Any]  # (config, setup, key) -> algorithm state
     update: Callable[[AgentConfig, Setup, Any], tuple[Any, UpdateStats]]  # (config, setup, state) -> (state, stats)
     greedy: Callable[[AgentConfig, Setup, Any, int], Policy]  # (config, setup, params, num_envs) -> policy
@@ -112,7 +112,7 @@ class Algorithm:
         """The env and network of `config` (call once per compiled program; the traced cost and noise go into the
         env params)."""
         env, env_params, max_steps = training_env(config)
-        return Setup(env, env_params, max_steps, self.network(config, env.action_space(env_params).n))
+        return Setup(env, env_params, max_steps, self.network(config, env.action_space(env_params)))
 
 
 def evaluate(
@@ -250,11 +250,15 @@ def make_train(algo: Algorithm) -> Callable[[AgentConfig, jax.Array], tuple[RunS
     return train
 
 
-def greedy_policy(q_or_logits: Callable[[jax.Array], jax.Array]) -> Policy:
-    """A memoryless policy taking the argmax of `q_or_logits(obs)`."""
+def _argmax(values: jax.Array) -> jax.Array:
+    return jnp.argmax(values, axis=-1)
+
+
+def greedy_policy(outputs: Callable[[jax.Array], Any], mode: Callable[[Any], jax.Array] = _argmax) -> Policy:
+    """A memoryless policy taking `mode(outputs(obs))`: by default the argmax of Q-values or logits."""
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        return jnp.argmax(q_or_logits(batch.obs), axis=-1), carry, None
+        return mode(outputs(batch.obs)), carry, None
 
     return act, None
 

@@ -7,6 +7,7 @@ runs) are skipped with a note in the report instead of failing.
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -146,7 +147,7 @@ def _map_lines(data: SweepData, path: Path, figure_dir: Path, formats: Sequence[
             panels[f"cost {cost:g}, seed {best.seed}"] = record_agent(
                 saved.config, saved.params, jax.random.key(0), num_episodes=episodes
             )
-        name = f"maps_{env}_{agent}".replace("/", "_")
+        name = re.sub(r"[^A-Za-z0-9._-]", "_", f"maps_{env}_{agent}")  # "brax:reacher" -> "brax_reacher"
         plots.save_figure(plot_measurement_map(panels, title=f"{env}, {agent}"), figure_dir / f"{name}.{formats[0]}",
                           formats[1:])
         lines += [f"### {env}, {agent}", "", f"![{env} {agent} measurement maps](figures/{name}.{formats[0]})", "",

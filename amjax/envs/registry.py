@@ -8,6 +8,8 @@ from typing import Any
 import gymnax
 from gymnax.environments.environment import Environment
 
+from amjax.envs import brax_env
+
 EnvFactory = Callable[[], tuple[Environment, Any]]
 
 
@@ -47,8 +49,10 @@ def register(env_id: str, factory: EnvFactory) -> None:
 
 
 def registered_envs() -> list[str]:
-    """Every id `make_env` accepts: amjax's own, user-registered ones, and gymnax's."""
-    return sorted(set(_AMJAX_ENVS) | set(_CUSTOM_ENVS) | set(gymnax.registered_envs))
+    """The ids `make_env` accepts: amjax's own, user-registered ones, gymnax's, and (with brax installed) three of
+    brax's; any "brax:<env_name>[:<backend>]" works too (`amjax.envs.brax_env`)."""
+    brax_ids = brax_env.LISTED if brax_env.brax_installed() else ()
+    return sorted(set(_AMJAX_ENVS) | set(_CUSTOM_ENVS) | set(gymnax.registered_envs) | set(brax_ids))
 
 
 def make_env(env_id: str) -> tuple[Environment, Any]:
@@ -58,6 +62,9 @@ def make_env(env_id: str) -> tuple[Environment, Any]:
             return table[env_id]()
     if env_id in gymnax.registered_envs:
         return gymnax.make(env_id)
+    if isinstance(env_id, str) and env_id.startswith(brax_env.PREFIX):
+        return brax_env.make_brax(env_id)
     raise ValueError(
-        f"env_id: unknown environment {env_id!r}; allowed values: {', '.join(registered_envs())}"
+        f"env_id: unknown environment {env_id!r}; allowed values: {', '.join(registered_envs())}, or "
+        f"'{brax_env.PREFIX}<env_name>[:<backend>]' for any brax environment ({brax_env.INSTALL_HINT})"
     )

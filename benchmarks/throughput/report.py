@@ -62,6 +62,18 @@ def machine_info() -> dict[str, str]:
     }
 
 
+def save_table(table: str, out: Path | None, name: str) -> Path:
+    """Print a benchmark's markdown `table` and write it to `out` (default benchmarks/results/<name>_<date>.md)."""
+    import datetime
+
+    print(table)
+    out = out or Path(__file__).parents[1] / "results" / f"{name}_{datetime.date.today()}.md"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(table)
+    print(f"written to {out}")
+    return out
+
+
 def header_lines(info: dict[str, str], load_start: float) -> list[str]:
     return [
         f"Machine: {info['cpu']}",

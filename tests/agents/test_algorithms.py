@@ -34,7 +34,10 @@ TINY = {
         total_timesteps=2000, eval_every=1000, buffer_size=1000, learning_starts=200, batch_size=16, eval_episodes=2
     ),
 }
-ALGOS = {"ppo": PPO, "dqn": DQN}
+# Box control (a Gaussian torque and a Bernoulli measuring choice) on gymnax's Pendulum-v1.
+TINY["ppo-box"] = PPOConfig(env_id="Pendulum-v1", total_timesteps=2048, eval_every=1024, num_envs=4, num_steps=64,
+                            eval_episodes=2, hidden=(16,))
+ALGOS = {"ppo": PPO, "dqn": DQN, "ppo-box": PPO}
 
 
 def slow_gae(rewards, values, next_values, terminated, done, gamma, lam):
@@ -137,7 +140,7 @@ def _run(name, config, key):
     return _compiled(name)[0](config, key)
 
 
-@pytest.mark.parametrize("name", ["ppo", "dqn"])
+@pytest.mark.parametrize("name", ["ppo", "dqn", "ppo-box"])
 def test_seeds_determinism_and_vmap_equals_alone(name):
     base = TINY[name]
     configs = [base.replace(cost=c, learning_rate=lr) for c, lr in [(0.0, 1e-3), (0.2, 3e-4), (0.1, 5e-4)]]
