@@ -69,3 +69,14 @@ def test_ppo_keeps_measuring_on_acrobot_under_cost():
     message = f"training episodes' measured fractions {measured.round(3).tolist()}, lengths {length.round(1).tolist()}"
     assert np.median(measured) > 0.25, message  # still measuring ...
     assert np.median(length) < 250, message  # ... and reaching the goal (Acrobot stops unsolved at 500 steps)
+
+
+@pytest.mark.slow
+def test_ppo_swings_up_pendulum():
+    """Box control: PPO's Gaussian head with Pendulum-v1's preset (vanilla) swings the pendulum up and holds it.
+    Gymnasium-style returns: about -1,200 for a random policy, -150 for a good one (episodes of 200 steps)."""
+    preset = {key.partition(".")[2]: value for key, value in env_hyperparams("Pendulum-v1", ("ppo",)).items()}
+    config = PPOConfig(env_id="Pendulum-v1", vanilla=True, total_timesteps=204_800, eval_every=20_480, **preset)
+    rows = train_rows(PPO, [config] * len(SEEDS), list(SEEDS))
+    best = np.asarray(rows.test.raw_return).max(axis=1)
+    assert np.median(best) >= -200, f"best test returns per seed {best.round(1).tolist()}"
