@@ -3,7 +3,7 @@
 `make_brax("brax:reacher:spring")` builds brax's `reacher` (`brax.envs.get_environment`) on the `spring` physics
 pipeline and wraps it as a gymnax `Environment`, so `amjax.make` puts the active-measure wrapper on top like on any
 other Box-action environment. Without a backend the env's own default is used (generalized for brax's classic
-envs). What the adapter does (docs/brax.md has the details and measured speeds):
+envs). What the adapter does (docs/brax.md has the details):
 
 - Auto-reset with fresh randomness: gymnax's `Environment.step` splits the step's key and resets from one half
   where an episode ended. (brax's own `AutoResetWrapper` restores the episode's first state instead, so every
