@@ -58,10 +58,14 @@ def test_solves_cartpole_and_measures_less_under_cost(name):
     assert np.median(best_measured[1]) < 0.9, message  # ... while skipping measurements
 
 
+def ppo_preset(env_id: str) -> dict[str, object]:
+    """The preset's PPO hyperparameters for `env_id` as PPOConfig fields (the "ppo." scope dropped)."""
+    return {key.partition(".")[2]: value for key, value in env_hyperparams(env_id, ("ppo",)).items()}
+
 @pytest.mark.slow
 def test_ppo_keeps_measuring_on_acrobot_under_cost():
     """The collapse this catches: PPO's training episodes measuring on ~2% of steps and lasting all 500 steps."""
-    preset = {key.partition(".")[2]: value for key, value in env_hyperparams("Acrobot-v1", ("ppo",)).items()}
+    preset = ppo_preset("Acrobot-v1")
     config = PPOConfig(env_id="Acrobot-v1", cost=0.3, total_timesteps=61_440, eval_every=20_480, **preset)
     rows = train_rows(PPO, [config] * len(SEEDS), list(SEEDS))
     measured = np.asarray(rows.train.measured_fraction)[:, -1]  # the last 20,480 steps' episodes
@@ -75,7 +79,7 @@ def test_ppo_keeps_measuring_on_acrobot_under_cost():
 def test_ppo_swings_up_pendulum():
     """Box control: PPO's Gaussian head with Pendulum-v1's preset (vanilla) swings the pendulum up and holds it.
     Gymnasium-style returns: about -1,200 for a random policy, -150 for a good one (episodes of 200 steps)."""
-    preset = {key.partition(".")[2]: value for key, value in env_hyperparams("Pendulum-v1", ("ppo",)).items()}
+    preset = ppo_preset("Pendulum-v1")
     config = PPOConfig(env_id="Pendulum-v1", vanilla=True, total_timesteps=204_800, eval_every=20_480, **preset)
     rows = train_rows(PPO, [config] * len(SEEDS), list(SEEDS))
     best = np.asarray(rows.test.raw_return).max(axis=1)
