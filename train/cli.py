@@ -21,7 +21,7 @@ import amjax
 amjax.use_all_cores()
 
 from amjax.agents import ALGORITHMS  # noqa: E402
-from amjax.envs.registry import registered_envs  # noqa: E402
+from amjax.envs.registry import make_env  # noqa: E402
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep  # noqa: E402
 from amjax.sweep.grid import MAX_CONFIGS, expand, round_schedule  # noqa: E402
 from amjax.sweep.storage import UnreadableFileError  # noqa: E402
@@ -141,8 +141,10 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
         if agent not in ALGORITHMS:
             raise ValueError(f"--agent: unknown agent {agent!r}; allowed values: {', '.join(sorted(ALGORITHMS))}")
     for env in changes.get("envs", ()):
-        if env not in registered_envs():
-            raise ValueError(f"--env: unknown environment {env!r}; allowed values: {', '.join(registered_envs())}")
+        try:
+            make_env(env)  # cheap; a brax id ("brax:<env_name>[:<backend>]") loads its model, about a second
+        except (ValueError, ImportError) as error:
+            raise type(error)(f"--env: {str(error).removeprefix('env_id: ')}") from None
     spec = dataclasses.replace(spec, **changes)
     if args.env_defaults:
         spec = dataclasses.replace(spec, env_defaults={

@@ -20,6 +20,8 @@ from gymnax.environments import spaces
 
 import amjax
 from amjax.envs import brax_env
+from train.cli import build_parser, spec_from_args
+from train.cli import main as train_main
 
 STEPS = 45
 BATCH = 2
@@ -290,3 +292,24 @@ def test_without_brax_a_brax_id_says_how_to_install_it(without_brax, env_id):
     assert not any(name.startswith("brax:") for name in amjax.registered_envs())
     env, params = amjax.make("Pendulum-v1", cost=0.1)  # the rest of amjax works
     assert env.action_space(params).shape == (2,)
+
+
+def test_sweep_command_takes_any_brax_id():
+    """`python -m train sweep --env` takes every id `amjax.make` does, a backend included (not only the listed ids)."""
+    needs_brax()
+    args = build_parser().parse_args(["sweep", "--env", "brax:reacher:spring", "brax:hopper", "--agent", "ppo",
+                                      "--out", "unused"])
+    assert spec_from_args(args).envs == ("brax:reacher:spring", "brax:hopper")
+
+
+@pytest.mark.parametrize(
+    ("env_id", "message"),
+    [("brax:reacher:warp", "--env: unknown brax backend 'warp'"), ("brax:cartpole", "--env: unknown brax environment")],
+)
+def test_sweep_command_refuses_bad_brax_ids(tmp_path, capsys, env_id, message):
+    needs_brax()
+    with pytest.raises(SystemExit) as exit_info:
+        train_main(["sweep", "--env", env_id, "--agent", "ppo", "--out", str(tmp_path / "never")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and message in err and "Traceback" not in err
+    assert not (tmp_path / "never").exists()
