@@ -2,6 +2,7 @@
 
     python benchmarks/brax_speed.py                                   # 3 envs x 4 backends, 256 envs
     python benchmarks/brax_speed.py --envs reacher --backends spring --batch 1024
+    python benchmarks/brax_speed.py --ppo 15 --backends generalized spring     # PPO training, 15 configurations
 
 Each case is `amjax.make_env("brax:<env>:<backend>")` (the plain adapter: random actions in [-1, 1], gymnax's
 auto-reset, which computes a fresh reset every step and keeps it where an episode ended) stepped in a jitted
@@ -9,6 +10,10 @@ auto-reset, which computes a fresh reset every step and keeps it where an episod
 time limit) in the same kind of program: the gap is what the adapter's auto-reset costs. The timed run is the
 fastest of `--repeats` after one untimed run. Compile: seconds to lower and compile that program. Prints a markdown
 table with the machine and writes it to benchmarks/results/brax_speed_<date>.md.
+
+With `--ppo N` it times PPO training instead: N configurations (costs 0.1 / 0.2 / 0.3 in turn, PPO's defaults:
+8 envs each) of `--ppo-steps` env steps on the active-measure env, as the sweep runner compiles and runs them (the
+programs of `benchmarks/throughput`, one greedy test episode at the end), per env and backend.
 """
 
 from __future__ import annotations
@@ -23,10 +28,17 @@ from pathlib import Path
 
 import jax
 
+import amjax
+
+if "--ppo" in sys.argv:  # PPO as the sweep runner trains it: one CPU device per core, set before JAX starts
+    amjax.use_all_cores()
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
 
 from amjax.envs.brax_env import BACKENDS, make_brax  # noqa: E402
 from benchmarks.throughput.report import machine_info, save_table  # noqa: E402
+from benchmarks.throughput.runners import build_amjax  # noqa: E402
+from benchmarks.throughput.timing import timed  # noqa: E402
 
 ENVS = ("inverted_pendulum", "inverted_double_pendulum", "reacher")
 
@@ -88,6 +100,38 @@ def measure(env_name: str, backend: str, batch: int, n_steps: int, repeats: int)
     return {"adapter": adapter, "adapter_compile": adapter_compile, "brax": brax, "brax_compile": brax_compile}
 
 
+def measure_ppo(env_name: str, backend: str, configs: int, steps: int, repeats: int) -> dict[str, float]:
+    """PPO training env-steps/s (all configurations together, the fastest of `repeats` runs) and compile seconds."""
+    case = {"agent": "ppo", "env_id": f"brax:{env_name}:{backend}", "configs": configs, "steps": steps, "evals": 1,
+            "eval_episodes": 1, "vanilla": False, "target_chunks": 1}
+    built = build_amjax(case)
+    run_s = timed(built["run"], repeats)["run_s"]
+    return {"ppo": configs * steps / run_s, "ppo_compile": built["compile_s"]}
+
+
+def ppo_table(args: argparse.Namespace, info: dict[str, str], load_start: float) -> str:
+    rows = []
+    for env_name in args.envs:
+        for backend in args.backends:
+            row = measure_ppo(env_name, backend, args.ppo, args.ppo_steps, args.repeats)
+            rows.append((env_name, backend, row))
+            print(f"{env_name} / {backend}: PPO {row['ppo']:,.0f} env-steps/s, compile {row['ppo_compile']:.1f} s",
+                  flush=True)
+    lines = [
+        f"# brax through amjax: PPO training speed, {args.ppo} configurations x {args.ppo_steps:,} env steps, "
+        f"{datetime.date.today()}",
+        "",
+        f"Machine: {info['cpu']}. {info['software']}, brax {version('brax')}. {len(jax.devices())} CPU devices "
+        f"(one per core, `amjax.use_all_cores`, as in a sweep). Load average (1 min) at the start {load_start:.2f}, "
+        f"at the end {os.getloadavg()[0]:.2f}.",
+        "",
+        "| env | backend | PPO training env-steps/s (all configurations) | compile (s) |",
+        "|---|---|---|---|",
+    ]
+    lines += [f"| {e} | {b} | {r['ppo']:,.0f} | {r['ppo_compile']:.1f} |" for e, b, r in rows]
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--envs", nargs="+", default=list(ENVS))
@@ -96,9 +140,14 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=200, help="steps of every env per timed run")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--ppo", type=int, default=0, metavar="N", help="time PPO training of N configurations")
+    parser.add_argument("--ppo-steps", type=int, default=102_400, help="env steps per PPO configuration")
     args = parser.parse_args()
 
     info, load_start = machine_info(), os.getloadavg()[0]
+    if args.ppo:
+        save_table(ppo_table(args, info, load_start), args.out, "brax_ppo_speed")
+        return
     rows = []
     for env_name in args.envs:
         for backend in args.backends:

@@ -62,7 +62,7 @@ def agent_config(case: dict[str, Any], cost: float):
 
     steps = case["steps"]
     kwargs: dict[str, Any] = {
-        "env_id": ENV_ID,
+        "env_id": case.get("env_id", ENV_ID),
         "total_timesteps": steps,
         "eval_every": steps // case["evals"],
         "eval_episodes": case["eval_episodes"],
