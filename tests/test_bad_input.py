@@ -61,6 +61,9 @@ SWEEP_CASES = [
     (["--set", "hidden=(0,)"], "hidden: got (0,)"),
     (["--set", "hidden=(64,-1)"], "hidden: got (64, -1)"),
     (["--set", "rescore_episodes=0"], "rescore_episodes: got 0"),
+    # Lists of bare words are split, and the bad word is named.
+    (["--set", "activation=relu,swish"], "activation: got 'swish'; allowed values: 'tanh', 'relu', 'elu'"),
+    (["--set", "eval_policy=stochastic,sample"], "eval_policy: got 'sample'"),
     (["--set", "no_such_field=3"], "no_such_field"),
     (["--set", "total_timesteps=1000"], "total_timesteps is set for the whole sweep"),
     (["--set", "cost=0.5"], "cost is a grid axis"),

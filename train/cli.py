@@ -34,6 +34,8 @@ def _parse_value(text: str) -> Any:
     try:
         return ast.literal_eval(text)
     except (ValueError, SyntaxError):
+        if "," in text:  # bare words among the values, e.g. relu,tanh
+            return tuple(_parse_value(part) for part in text.split(","))
         return text  # a bare word, e.g. relu
 
 

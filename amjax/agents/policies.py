@@ -7,8 +7,15 @@
   (amjax's brax adapter and gymnax's Pendulum-v1 / MountainCarContinuous-v0 do), and the log-probability is that
   of the unclipped sample, as in CleanRL's and PureJaxRL's continuous PPO. With `measure` (an active-measure env,
   whose Box gains a leading entry that measures iff it is >= 0.5) an independent Bernoulli chooses whether to
-  measure, and the action is `[measure in {0, 1}, control...]`. The greedy action measures iff the Bernoulli's
-  probability exceeds 1/2 and takes the Gaussian's mean.
+  measure, and the action is `[measure in {0, 1}, control...]`. The greedy action (`mode`) measures iff the
+  Bernoulli's probability exceeds 1/2 and takes the Gaussian's mean.
+
+The actor-critic agents' test policy (`eval_policy`, ppo_core.py) is by default the most probable action (`mode`);
+it can be the policy as trained (`sample`) or the most probable control measuring as the policy draws it
+(`mode_sampling_measure`). Without a fresh measurement a memoryless policy sees the same stale observation step
+after step, and a deterministic one then repeats the same control and the same choice not to measure: it can skip at
+most every other step and holds one action through every gap. PPO learns to measure and act as a mixed strategy
+while stale; on costed LunarLander-v3 its modes crash where the policies land (docs/eval_policy.md).
 
 Each distribution is a small frozen (hashable) object, a static attribute of the network that outputs its
 parameters (`networks.policy_head`): `sample`, `log_prob`, `entropy` and `mode` take those outputs.
@@ -28,9 +35,11 @@ from gymnax.environments import spaces
 
 @dataclass(frozen=True)
 class Categorical:
-    """A categorical over `num_actions` actions; its parameters are logits [..., num_actions]."""
+    """A categorical over `num_actions` actions; its parameters are logits [..., num_actions]. With `measure` the
+    actions are an active-measure env's pairs, `control + controls * measure` (`num_actions` = 2 x controls)."""
 
     num_actions: int
+    measure: bool = False
 
     def sample(self, key: jax.Array, logits: jax.Array) -> jax.Array:
         return jax.random.categorical(key, logits)
@@ -44,6 +53,19 @@ class Categorical:
 
     def mode(self, logits: jax.Array) -> jax.Array:
         return jnp.argmax(logits, axis=-1)
+
+    def mode_sampling_measure(self, key: jax.Array, logits: jax.Array) -> jax.Array:
+        """The most probable control (summed over measuring or not), measured with the policy's probability of
+        measuring given that control; `mode` without `measure`."""
+        if not self.measure:
+            return self.mode(logits)
+        controls = self.num_actions // 2
+        probs = jax.nn.softmax(logits)
+        skip, measure = probs[..., :controls], probs[..., controls:]
+        control = jnp.argmax(skip + measure, axis=-1)
+        p_skip, p_measure = (jnp.take_along_axis(p, control[..., None], -1)[..., 0] for p in (skip, measure))
+        measured = jax.random.uniform(key, control.shape) * (p_skip + p_measure) < p_measure
+        return control + controls * measured.astype(control.dtype)
 
 
 @struct.dataclass
@@ -103,6 +125,13 @@ class HybridGaussian:
             return out.mean
         return jnp.concatenate([(out.measure_logit > 0).astype(out.mean.dtype)[..., None], out.mean], -1)
 
+    def mode_sampling_measure(self, key: jax.Array, out: GaussianOutputs) -> jax.Array:
+        """The Gaussian's mean, measured with the Bernoulli's probability; `mode` without `measure`."""
+        if not self.measure:
+            return out.mean
+        measure = jax.random.bernoulli(key, jax.nn.sigmoid(out.measure_logit)).astype(out.mean.dtype)
+        return jnp.concatenate([measure[..., None], out.mean], -1)
+
 
 Distribution = Categorical | HybridGaussian
 
@@ -111,7 +140,9 @@ def for_action_space(space: Any, measure: bool) -> Distribution:
     """The distribution for an env's action space: `Categorical` for Discrete, `HybridGaussian` for a 1-D Box
     (`measure`: the Box's first entry is the active-measure wrapper's measuring choice, i.e. not a vanilla run)."""
     if isinstance(space, spaces.Discrete):
-        return Categorical(int(space.n))
+        if measure and int(space.n) % 2:
+            raise ValueError(f"action space: an active-measure Discrete space has 2 x controls actions, got {space}")
+        return Categorical(int(space.n), bool(measure))
     if isinstance(space, spaces.Box) and len(space.shape) == 1 and space.shape[0] > int(measure):
         return HybridGaussian(space.shape[0] - int(measure), bool(measure))
     raise ValueError(f"action space: actor-critic agents need Discrete or a 1-D Box action space, got {space}")

@@ -8,6 +8,7 @@ The config, optimiser, GAE, loss and shuffle it shares with recurrent PPO are in
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any
 
 import jax
@@ -25,6 +26,7 @@ from amjax.agents.ppo_core import (
     make_optimizer,
     rollout_advantages,
     shuffle,
+    test_action,
 )
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
@@ -140,7 +142,8 @@ def update(config: PPOConfig, setup: Setup, state: PPOState) -> tuple[PPOState, 
 
 
 def greedy(config: PPOConfig, setup: Setup, params: Any, num_envs: int):
-    return greedy_policy(lambda obs: setup.network.apply(params, obs)[0], setup.network.distribution.mode)
+    mode = partial(test_action, config, setup.network.distribution)
+    return greedy_policy(lambda obs: setup.network.apply(params, obs)[0], mode)
 
 
 PPO = Algorithm("ppo", PPOConfig, network, init, update, greedy, params=lambda state: state.params)

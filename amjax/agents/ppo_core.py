@@ -23,6 +23,8 @@ from amjax.agents.optim import clipped_adam
 from amjax.agents.policies import Distribution
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 
+EVAL_POLICIES = ("greedy", "stochastic", "greedy_control")
+
 
 @struct.dataclass
 class PPOBaseConfig(AgentConfig):
@@ -39,6 +41,10 @@ class PPOBaseConfig(AgentConfig):
     # Rewards (costs included) are multiplied by this before GAE and the value targets. Static: a per-environment
     # constant, and at 1.0 the program is exactly today's (a traced 1.0 changes XLA's float rounding).
     reward_scale: float = static(1.0)
+    # The test policy (evaluations, re-scoring, saved policies): "greedy" (the most probable action),
+    # "stochastic" (the policy as trained) or "greedy_control" (the most probable control, measuring as the policy
+    # draws it). A memoryless greedy policy repeats itself on a stale observation (policies.py, docs/eval_policy.md).
+    eval_policy: str = static("greedy")
     learning_rate: float = 1e-3
     gamma: float = 0.99
     gae_lambda: float = 0.95
@@ -66,9 +72,19 @@ class PPOBaseConfig(AgentConfig):
         for name in ("num_envs", "num_steps", "update_epochs", "num_minibatches"):
             check_positive_int(name, getattr(self, name))
         check_choice("activation", self.activation, ("tanh", "relu", "elu"))
+        check_choice("eval_policy", self.eval_policy, EVAL_POLICIES)
         check_bool("clip_value", self.clip_value)
         check_real("reward_scale", self.reward_scale, low=0.0, low_inclusive=False)
         super().check_fields()
+
+
+def test_action(config: PPOBaseConfig, distribution: Distribution, outputs: Any, key: jax.Array) -> jax.Array:
+    """The test policy's action for the policy `outputs` (`config.eval_policy`)."""
+    if config.eval_policy == "stochastic":
+        return distribution.sample(key, outputs)
+    if config.eval_policy == "greedy_control":
+        return distribution.mode_sampling_measure(key, outputs)
+    return distribution.mode(outputs)
 
 
 def make_optimizer(config: PPOBaseConfig) -> optax.GradientTransformation:

@@ -23,7 +23,14 @@ from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import CELLS, RecurrentActorCritic, zero_carry
 from amjax.agents.optim import minibatch_step
 from amjax.agents.policies import for_action_space
-from amjax.agents.ppo_core import PPOBaseConfig, clipped_loss, make_optimizer, rollout_advantages, shuffle
+from amjax.agents.ppo_core import (
+    PPOBaseConfig,
+    clipped_loss,
+    make_optimizer,
+    rollout_advantages,
+    shuffle,
+    test_action,
+)
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, FinishedEpisodes, UpdateStats, make_train
@@ -142,11 +149,12 @@ def update(config: PPORNNConfig, setup: Setup, state: PPORNNState) -> tuple[PPOR
 
 
 def greedy(config: PPORNNConfig, setup: Setup, params: Any, num_envs: int):
-    """The most probable action, carrying the hidden state; a zero hidden state for `num_envs` test envs."""
+    """The test policy (`ppo_core.test_action`), carrying the hidden state; a zero hidden state for `num_envs`
+    test envs."""
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
         carry, (policy, _) = setup.network.apply(params, carry, batch.obs, batch.first)
-        return setup.network.distribution.mode(policy), carry, None
+        return test_action(config, setup.network.distribution, policy, key), carry, None
 
     return act, zero_carry(config.cell, config.rnn_size, (num_envs,))
 

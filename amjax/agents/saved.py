@@ -62,9 +62,10 @@ class SavedPolicy:
         means = _evaluate(self.agent, config, self.params, key, int(num_episodes))
         return {name: float(value) for name, value in dataclasses.asdict(means).items()}
 
-    def actor(self) -> Actor:
-        """A stateful one-env actor for NumPy loops (e.g. a Gymnasium env from `amjax.wrappers.gymnasium`)."""
-        return Actor(self)
+    def actor(self, seed: int = 0) -> Actor:
+        """A stateful one-env actor for NumPy loops (e.g. a Gymnasium env from `amjax.wrappers.gymnasium`); `seed`
+        seeds the test policy's own draws (an actor-critic agent samples whether to measure)."""
+        return Actor(self, seed)
 
 
 @partial(jax.jit, static_argnames=("agent", "num_episodes"))
@@ -75,23 +76,28 @@ def _evaluate(agent: str, config: AgentConfig, params: Any, key: jax.Array, num_
 
 class Actor:
     """`actor(obs) -> action` for one env, step by step (an int for a Discrete env, a float32 NumPy array for a
-    Box one); `reset()` at each episode start (recurrent agents start from a zero hidden state, as in training)."""
+    Box one); `reset()` at each episode start (recurrent agents start from a zero hidden state, as in training).
+    Each call draws a fresh key for the test policy from `seed`'s stream."""
 
-    def __init__(self, saved: SavedPolicy):
+    def __init__(self, saved: SavedPolicy, seed: int = 0):
         act, self._initial = saved.policy(num_envs=1)
 
-        def step(obs, carry, first):
-            action, carry, _ = act(EnvBatch(obs[None], None, first[None]), carry, jax.random.key(0))
-            return action[0], carry
+        def step(obs, carry, first, key):
+            key, act_key = jax.random.split(key)
+            action, carry, _ = act(EnvBatch(obs[None], None, first[None]), carry, act_key)
+            return action[0], carry, key
 
         self._step = jax.jit(step)
+        self._key = jax.random.key(seed)
         self.reset()
 
     def reset(self) -> None:
         self._carry, self._first = self._initial, True
 
     def __call__(self, obs: Any) -> int | np.ndarray:
-        action, self._carry = self._step(jnp.asarray(obs, jnp.float32), self._carry, jnp.bool_(self._first))
+        action, self._carry, self._key = self._step(
+            jnp.asarray(obs, jnp.float32), self._carry, jnp.bool_(self._first), self._key
+        )
         self._first = False
         return int(action) if action.ndim == 0 else np.asarray(action)
 

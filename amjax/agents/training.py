@@ -250,15 +250,17 @@ def make_train(algo: Algorithm) -> Callable[[AgentConfig, jax.Array], tuple[RunS
     return train
 
 
-def _argmax(values: jax.Array) -> jax.Array:
+def _argmax(values: jax.Array, key: jax.Array) -> jax.Array:
     return jnp.argmax(values, axis=-1)
 
 
-def greedy_policy(outputs: Callable[[jax.Array], Any], mode: Callable[[Any], jax.Array] = _argmax) -> Policy:
-    """A memoryless policy taking `mode(outputs(obs))`: by default the argmax of Q-values or logits."""
+def greedy_policy(
+    outputs: Callable[[jax.Array], Any], mode: Callable[[Any, jax.Array], jax.Array] = _argmax
+) -> Policy:
+    """A memoryless test policy taking `mode(outputs(obs), key)`: by default the argmax of Q-values."""
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        return mode(outputs(batch.obs)), carry, None
+        return mode(outputs(batch.obs), key), carry, None
 
     return act, None
 

@@ -91,7 +91,7 @@ def test_distribution_follows_the_action_space():
     assert isinstance(plain, AlwaysMeasured)
     assert for_action_space(plain.action_space(plain_params), measure=False) == HybridGaussian(1, False)
     cartpole, cartpole_params = make("CartPole-v0", cost=0.1)
-    assert for_action_space(cartpole.action_space(cartpole_params), measure=True) == Categorical(4)
+    assert for_action_space(cartpole.action_space(cartpole_params), measure=True) == Categorical(4, measure=True)
 
 
 def test_agents_for_discrete_actions_refuse_box_envs_before_compiling():

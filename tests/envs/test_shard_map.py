@@ -15,12 +15,15 @@ from jax.sharding import Mesh, PartitionSpec
 import amjax
 
 ENV_IDS = ("CartPole-v0", "Acrobot-v1", "LunarLander-v3", "MemoryProbe-v0")
-STEPS = 3
+# Steps per env, unrolled (each one compiled again). LunarLander's step holds every solver loop and its compile is
+# most of this file's time; two steps still feed a step's own output state back into it.
+STEPS = {"LunarLander-v3": 2}
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
 def test_reset_and_step_under_shard_map(env_id: str) -> None:
     env, params = amjax.make(env_id, cost=0.1)
+    steps = STEPS.get(env_id, 3)
     devices = jax.devices()
     mesh = Mesh(np.array(devices), ("envs",))
     spec = PartitionSpec("envs")
@@ -32,7 +35,7 @@ def test_reset_and_step_under_shard_map(env_id: str) -> None:
             reset_key, key = jax.random.split(key)
             obs, state = env.reset(reset_key, params)
             rewards = []
-            for step_key in jax.random.split(key, STEPS):
+            for step_key in jax.random.split(key, steps):
                 action_key, step_key = jax.random.split(step_key)
                 action = env.action_space(params).sample(action_key)
                 obs, state, reward, _, _, _ = env.step(step_key, state, action, params)
@@ -43,5 +46,5 @@ def test_reset_and_step_under_shard_map(env_id: str) -> None:
 
     keys = jax.random.split(jax.random.key(0), 2 * len(devices))
     obs, rewards = jax.jit(jax.shard_map(rollout, mesh=mesh, in_specs=spec, out_specs=spec))(keys)
-    assert rewards.shape == (len(keys), STEPS)
+    assert rewards.shape == (len(keys), steps)
     assert np.isfinite(np.asarray(obs)).all() and np.isfinite(np.asarray(rewards)).all()

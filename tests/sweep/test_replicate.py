@@ -24,6 +24,7 @@ def test_replication_grid_is_the_papers():
     # LunarLander's PPO runs use the tuned settings (agent-scoped: DQN and DRQN keep their defaults).
     lunar = {r.agent: r.config for r in expand(specs["LunarLander-v3"])}
     assert lunar["ppo"].num_envs == 16 and lunar["ppo"].gamma == pytest.approx(0.999)
+    assert lunar["ppo"].eval_policy == "greedy_control"  # a costed run's greedy policy crashes (docs/eval_policy.md)
     assert lunar["dqn"].gamma == pytest.approx(0.99)
     assert presets.replicate_specs(("LunarLander-v3",), ("dqn",))["LunarLander-v3"].hyperparams == {}
 
