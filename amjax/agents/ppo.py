@@ -22,11 +22,11 @@ from amjax.agents.policies import for_action_space
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
     clipped_loss,
+    eval_action,
     gae,
     make_optimizer,
     rollout_advantages,
     shuffle,
-    test_action,
 )
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
@@ -142,7 +142,7 @@ def update(config: PPOConfig, setup: Setup, state: PPOState) -> tuple[PPOState, 
 
 
 def greedy(config: PPOConfig, setup: Setup, params: Any, num_envs: int):
-    mode = partial(test_action, config, setup.network.distribution)
+    mode = partial(eval_action, config, setup.network.distribution)
     return greedy_policy(lambda obs: setup.network.apply(params, obs)[0], mode)
 
 

@@ -78,7 +78,7 @@ class PPOBaseConfig(AgentConfig):
         super().check_fields()
 
 
-def test_action(config: PPOBaseConfig, distribution: Distribution, outputs: Any, key: jax.Array) -> jax.Array:
+def eval_action(config: PPOBaseConfig, distribution: Distribution, outputs: Any, key: jax.Array) -> jax.Array:
     """The test policy's action for the policy `outputs` (`config.eval_policy`)."""
     if config.eval_policy == "stochastic":
         return distribution.sample(key, outputs)

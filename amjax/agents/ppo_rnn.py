@@ -26,10 +26,10 @@ from amjax.agents.policies import for_action_space
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
     clipped_loss,
+    eval_action,
     make_optimizer,
     rollout_advantages,
     shuffle,
-    test_action,
 )
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
@@ -149,12 +149,12 @@ def update(config: PPORNNConfig, setup: Setup, state: PPORNNState) -> tuple[PPOR
 
 
 def greedy(config: PPORNNConfig, setup: Setup, params: Any, num_envs: int):
-    """The test policy (`ppo_core.test_action`), carrying the hidden state; a zero hidden state for `num_envs`
+    """The test policy (`ppo_core.eval_action`), carrying the hidden state; a zero hidden state for `num_envs`
     test envs."""
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
         carry, (policy, _) = setup.network.apply(params, carry, batch.obs, batch.first)
-        return test_action(config, setup.network.distribution, policy, key), carry, None
+        return eval_action(config, setup.network.distribution, policy, key), carry, None
 
     return act, zero_carry(config.cell, config.rnn_size, (num_envs,))
 

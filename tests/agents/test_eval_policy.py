@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from amjax.agents import PPOConfig, load_policy, ppo, save_policy
 from amjax.agents.policies import Categorical, GaussianOutputs, HybridGaussian
-from amjax.agents.ppo_core import test_action as ppo_test_action
+from amjax.agents.ppo_core import eval_action as ppo_eval_action
 from amjax.agents.setup import training_env
 from amjax.agents.training import evaluate
 
@@ -52,7 +52,7 @@ def test_sampled_measure_of_the_hybrid_gaussian_is_bernoulli_and_control_is_the_
     np.testing.assert_array_equal(action[:, 1:], 0.5)
 
 
-def test_without_measure_the_test_action_is_the_mode():
+def test_without_measure_the_eval_action_is_the_mode():
     logits = jnp.asarray(np.random.default_rng(0).normal(size=(16, 3)), jnp.float32)
     dist = Categorical(3)
     np.testing.assert_array_equal(dist.mode_sampling_measure(jax.random.key(0), logits), dist.mode(logits))
@@ -103,13 +103,13 @@ def test_eval_policy_is_checked_before_compiling():
         TINY.replace(eval_policy="sample").validate()
 
 
-def test_test_action_dispatches_on_the_config():
+def test_eval_action_dispatches_on_the_config():
     n = 20_000
     logits = jnp.broadcast_to(jnp.log(jnp.array([0.1, 0.2, 0.3, 0.4])), (n, 4))
     dist = Categorical(4, measure=True)
 
     def actions(eval_policy):
-        return np.asarray(ppo_test_action(TINY.replace(eval_policy=eval_policy), dist, logits, jax.random.key(0)))
+        return np.asarray(ppo_eval_action(TINY.replace(eval_policy=eval_policy), dist, logits, jax.random.key(0)))
 
     assert set(np.unique(actions("greedy"))) == {3}
     assert set(np.unique(actions("greedy_control"))) == {1, 3}
