@@ -15,6 +15,7 @@ from amjax.wrappers.active_measure import (
     AlwaysMeasured,
     MeasureParams,
 )
+from amjax.wrappers.instruments import resolve_instruments
 
 
 def make(
@@ -27,6 +28,9 @@ def make(
     extra_obs: tuple[str, ...] = (),
     budget: Any = None,
     reward_timing: str = "immediate",
+    instruments: Any = (),
+    instrument_costs: Any = None,
+    instrument_noise: Any = None,
 ) -> tuple[Environment, Any]:
     """Build `env_id` wrapped as an active-measure MDP; returns `(env, params)`.
 
@@ -47,14 +51,23 @@ def make(
         no budget.
       reward_timing: "immediate" (the paper's) or "on_measure": the raw reward of unmeasured steps is withheld and
         paid, summed, at the next measurement or at the episode's end.
+      instruments: read the observation in parts: a tuple of instruments, each a tuple of observation indices,
+        together holding every index once (e.g. ((0, 1), (2, 3)) for CartPole's cart and pole), or "default"
+        (`amjax.wrappers.instruments.DEFAULT_INSTRUMENTS`). The action then picks a control and a subset of
+        instruments (Discrete(n) -> Discrete(n 2^k), `control + n * mask`); each instrument has its own flag.
+        () is the paper's single switch.
+      instrument_costs: the price of reading each instrument (k numbers >= 0, traced; default zeros); `cost` is
+        then charged once per step on which any instrument is read.
+      instrument_noise: the std of each instrument's Gaussian reading noise (k numbers >= 0, traced; default 0).
     """
     check_bool("vanilla", vanilla)
     check_bool("flag", flag)
     if vanilla:
         if (noise_std is not None or mode != "last" or check_real("cost", cost).any() or extra_obs
-                or budget is not None or reward_timing != "immediate"):
-            raise ValueError("vanilla=True takes no cost, mode, noise_std, extra_obs, budget or reward_timing: it "
-                             "never hides a state")
+                or budget is not None or reward_timing != "immediate" or instruments != ()
+                or instrument_costs is not None or instrument_noise is not None):
+            raise ValueError("vanilla=True takes no cost, mode, noise_std, extra_obs, budget, reward_timing or "
+                             "instruments: it never hides a state")
         return wrap(env_id, vanilla=True)
     check_choice("mode", mode, MODES)  # extra_obs and reward_timing: the wrapper checks them
     if budget is not None:
@@ -69,8 +82,21 @@ def make(
     else:
         noise_std = 0.0
     wrapped, env_params = wrap(env_id, mode, flag, extra_obs=extra_obs, budgeted=budget is not None,
-                               reward_timing=reward_timing)
-    return wrapped, measure_params(env_params, cost, noise_std, budget)
+                               reward_timing=reward_timing, instruments=instruments)
+    k = len(wrapped.instruments)
+    prices = {"instrument_costs": instrument_costs, "instrument_noise": instrument_noise}
+    for name, value in prices.items():
+        if value is None:
+            prices[name] = [0.0] * k if k else None
+            continue
+        if not k:
+            raise ValueError(f"{name}: only with instruments (there are none; set instruments first)")
+        value = check_real(name, value, low=0.0)
+        if value.shape[-1:] != (k,):
+            raise ValueError(f"{name}: got shape {value.shape}; allowed: one number per instrument, {k} of them "
+                             "(a last axis of that length; leading axes to vmap over)")
+        prices[name] = value
+    return wrapped, measure_params(env_params, cost, noise_std, budget, **prices)
 
 
 def wrap(
@@ -81,6 +107,7 @@ def wrap(
     extra_obs: tuple[str, ...] = (),
     budgeted: bool = False,
     reward_timing: str = "immediate",
+    instruments: Any = (),
 ) -> tuple[Environment, Any]:
     """The wrapped environment and the *inner* env's params, unchecked (`make` checks its arguments first).
 
@@ -89,16 +116,26 @@ def wrap(
     env, env_params = make_env(env_id)
     if vanilla:
         return AlwaysMeasured(env, env_params), env_params
-    wrapped = ActiveMeasure(env, mode, flag, env_params, extra_obs, budgeted, reward_timing)
+    wrapped = ActiveMeasure(env, mode, flag, env_params, extra_obs, budgeted, reward_timing,
+                            resolve_instruments(env_id, instruments))
     return wrapped, env_params
 
 
-def measure_params(env_params: Any, cost: Any, noise_std: Any, budget: Any = None) -> MeasureParams:
-    """`MeasureParams` around the inner env's params; `cost`, `noise_std` and `budget` (None: no budget) may be
-    traced (float32 arrays)."""
+def measure_params(
+    env_params: Any, cost: Any, noise_std: Any, budget: Any = None, instrument_costs: Any = None,
+    instrument_noise: Any = None,
+) -> MeasureParams:
+    """`MeasureParams` around the inner env's params; `cost`, `noise_std`, `budget` (None: no budget) and the
+    instruments' prices and noise ([k]; None: no instruments) may be traced (float32 arrays)."""
+
+    def optional(value: Any) -> Any:
+        return None if value is None else jnp.asarray(value, jnp.float32)
+
     return MeasureParams(
         env_params=env_params,
         cost=jnp.asarray(cost, jnp.float32),
         noise_std=jnp.asarray(noise_std, jnp.float32),
-        budget=None if budget is None else jnp.asarray(budget, jnp.float32),
+        budget=optional(budget),
+        instrument_costs=optional(instrument_costs),
+        instrument_noise=optional(instrument_noise),
     )

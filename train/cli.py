@@ -49,6 +49,11 @@ def _sequence_fields() -> set[str]:
     }
 
 
+def _is_instruments(value: Any) -> bool:
+    """Whether `value` is one `instruments` value: "default", () or a tuple of index tuples."""
+    return value == "default" or (isinstance(value, tuple) and all(isinstance(v, tuple) for v in value))
+
+
 def _parse_set(items: Sequence[str]) -> dict[str, Any]:
     """`name=v1,v2` -> {name: [v1, v2]} (swept); `name=v` -> {name: v}; `agent.name=v` for one agent only. For a
     tuple-valued field such as `hidden`, `hidden=(128,128)` is one value and `hidden=(64,64),(128,128)` two."""
@@ -59,7 +64,10 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
         if not sep or not name:
             raise ValueError(f"--set: expected NAME=VALUE[,VALUE...], got {item!r}")
         value = _parse_value(text)
-        if name.rpartition(".")[2] in sequence_fields:
+        if name.rpartition(".")[2] == "instruments":  # one value is "default" or a tuple of index tuples
+            if isinstance(value, tuple) and value and all(_is_instruments(v) for v in value):
+                value = list(value)
+        elif name.rpartition(".")[2] in sequence_fields:
             if isinstance(value, tuple) and value and all(isinstance(v, tuple) for v in value):
                 value = list(value)
         elif isinstance(value, tuple):

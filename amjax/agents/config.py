@@ -18,6 +18,7 @@ from flax import struct
 from amjax.envs.registry import make_env
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 from amjax.wrappers.active_measure import MODES, REWARD_TIMINGS, check_extra_obs
+from amjax.wrappers.instruments import check_instruments, resolve_instruments
 
 _BOUNDS = {
     "positive": {"low": 0.0, "low_inclusive": False},
@@ -59,9 +60,13 @@ class AgentConfig:
     extra_obs: tuple[str, ...] = static(())  # "since_measured" and/or "last_action", appended after the flag
     budgeted: bool = static(False)  # enforce `budget` (and show the fraction left)
     reward_timing: str = static("immediate")  # or "on_measure": raw rewards paid at the next measurement
-    cost: float = 0.0  # traced: charged per measurement
+    # () (the paper's single switch), "default" (the env's split) or a tuple of observation-index tuples
+    instruments: Any = static(())
+    cost: float = 0.0  # traced: charged per measurement (with instruments: per step with any reading)
     noise_std: float = 0.0  # traced: std of the observation noise in mode "noisy"
     budget: float = 0.0  # traced: paid measurements allowed per episode (with budgeted=True)
+    instrument_costs: tuple[float, ...] = ()  # traced: the price of each instrument (() = zeros)
+    instrument_noise: tuple[float, ...] = ()  # traced: the std of each instrument's reading noise (() = zeros)
 
     # The allowed range of each traced field of a subclass: "positive" (> 0), "nonnegative" (>= 0) or "unit"
     # ([0, 1]); every value must be finite.
@@ -100,7 +105,10 @@ class AgentConfig:
         unknown = sorted(set(fields) - known)
         if unknown:
             raise ValueError(f"fields: {cls.__name__} has no field(s) {', '.join(unknown)}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+        def frozen(value: Any) -> Any:  # JSON lists back to (nested) tuples
+            return tuple(frozen(v) for v in value) if isinstance(value, list) else value
+
+        return cls(**{k: frozen(v) for k, v in fields.items()})
 
     def static_key(self) -> tuple[Any, ...]:
         """Everything that needs its own compiled program (configs with equal keys share one)."""
@@ -125,14 +133,20 @@ class AgentConfig:
         check_extra_obs(self.extra_obs)
         check_bool("budgeted", self.budgeted)
         check_choice("reward_timing", self.reward_timing, REWARD_TIMINGS)
-        if self.vanilla and (self.extra_obs or self.budgeted or self.reward_timing != "immediate"):
-            raise ValueError("vanilla: a vanilla run never hides a state; it takes no extra_obs, budgeted or "
-                             "reward_timing")
+        if self.vanilla and (self.extra_obs or self.budgeted or self.reward_timing != "immediate"
+                             or self.instruments != ()):
+            raise ValueError("vanilla: a vanilla run never hides a state; it takes no extra_obs, budgeted, "
+                             "reward_timing or instruments")
+        num_instruments = self.check_instruments(env, env_params)
         bounds = {"cost": "nonnegative", "noise_std": "nonnegative", "budget": "nonnegative", **self.TRACED_BOUNDS}
+        if num_instruments:
+            bounds.update(instrument_costs="nonnegative", instrument_noise="nonnegative")
         for name, kind in bounds.items():
             value = getattr(self, name)
             if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value)):
                 continue  # under vmap/jit: the caller checked the concrete values
+            if isinstance(value, tuple) and not value:
+                continue  # instrument prices and noise left at zero
             check_real(name, value, **_BOUNDS[kind])
         if self.vanilla and not isinstance(self.cost, jax.core.Tracer) and np.any(np.asarray(self.cost)):
             raise ValueError("cost: a vanilla run has no measurement cost; allowed values: 0")
@@ -159,6 +173,21 @@ class AgentConfig:
             )
         return self
 
+    def check_instruments(self, env: Any, env_params: Any) -> int:
+        """Check `instruments` and the lengths of their prices and noise; returns the number of instruments."""
+        instruments = resolve_instruments(self.env_id, self.instruments)
+        instruments = check_instruments(instruments, env.observation_space(env_params).shape[0])
+        for name in ("instrument_costs", "instrument_noise"):
+            value = getattr(self, name)
+            if not isinstance(value, tuple):
+                raise ValueError(f"{name}: got {value!r}; allowed values: a tuple of numbers >= 0, one per instrument, "
+                                 "or () for zeros")
+            if value and len(value) != len(instruments):
+                raise ValueError(f"{name}: got {len(value)} values for {len(instruments)} instruments; allowed: one "
+                                 "number >= 0 per instrument, or () for zeros" + ("" if instruments else
+                                                                                    " (set instruments first)"))
+        return len(instruments)
+
     def check_fields(self) -> None:
         """Check the fields an agent adds (overridden by each config class; call `super().check_fields()`)."""
 
@@ -167,6 +196,11 @@ class AgentConfig:
     def steps_per_update(self) -> int:
         """Env steps (all parallel envs) consumed by one call of the algorithm's `update`."""
         raise NotImplementedError
+
+    @property
+    def num_instruments(self) -> int:
+        """Measure choices per step: the number of instruments, or 1 (the paper's single switch)."""
+        return max(1, len(resolve_instruments(self.env_id, self.instruments)))
 
     @property
     def updates_per_eval(self) -> int:

@@ -84,7 +84,8 @@ def policy_head(module: nn.Module, x: jax.Array, distribution: Distribution, den
     log_std = module.param("log_std", nn.initializers.zeros_init(), (distribution.controls,), jnp.float32)
     measure_logit = None
     if distribution.measure:
-        measure_logit = dense(1, kernel_init=scaled_init(0.01), name="measure_logit")(x)[..., 0]
+        measure_logit = dense(distribution.readings, kernel_init=scaled_init(0.01), name="measure_logit")(x)
+        measure_logit = measure_logit if distribution.readings > 1 else measure_logit[..., 0]
     return GaussianOutputs(mean, jnp.broadcast_to(log_std, mean.shape), measure_logit)
 
 

@@ -59,7 +59,7 @@ class PPOState:
 
 
 def network(config: PPOConfig, action_space: Any) -> ActorCritic:
-    distribution = for_action_space(action_space, measure=not config.vanilla)
+    distribution = for_action_space(action_space, measure=not config.vanilla, readings=config.num_instruments)
     return ActorCritic(distribution, tuple(config.hidden), config.activation, config.shared_network)
 
 

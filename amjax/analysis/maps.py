@@ -3,7 +3,9 @@
 `record_measurements` runs any `Policy` in any amjax environment for N episodes in parallel, as one jitted
 `lax.scan`, and records per step whether it measured and whether the episode was still running;
 `record_agent` does the same for a trained agent (its config and network parameters); `plot_measurement_map` draws
-the grid episodes x time steps coloured measured / not measured / episode over.
+the grid episodes x time steps coloured measured / not measured / episode over. In an env with instruments the map
+also records which instruments each step read (`readings`), and with two instruments the grid colours each
+combination.
 
 Randomness, so that a hand-written loop can reproduce a map: `reset_key, run_key = split(fast_key(key))` (Philox,
 `amjax.agents.rollout.fast_key`); episode i starts from `reset(split(reset_key, N)[i])`; step t uses `act_key,
@@ -34,6 +36,8 @@ from amjax.agents.training import Policy
 # Colours of the three cell kinds: not measured, measured, episode over.
 MAP_COLORS = ("#f2c14e", "#1d4e89", "#e8e8e8")
 NOT_MEASURED, MEASURED, OVER = 0, 1, 2
+# With two instruments: not measured, the first only, the second only, both, episode over.
+INSTRUMENT_COLORS = ("#f2c14e", "#7fb3d5", "#c0392b", "#1d4e89", "#e8e8e8")
 
 
 @dataclass(frozen=True)
@@ -44,6 +48,7 @@ class MeasurementMap:
     active: np.ndarray  # [episodes, max_steps] bool: this step belongs to the episode (it had not ended before)
     costed_return: np.ndarray  # [episodes]
     raw_return: np.ndarray  # [episodes]
+    readings: np.ndarray | None = None  # [episodes, max_steps, k] bool: instruments read (envs with instruments)
 
     @property
     def lengths(self) -> np.ndarray:
@@ -54,8 +59,19 @@ class MeasurementMap:
         """Paid measurements / steps, over all episodes (as the sweep's measured fraction)."""
         return float((self.measured & self.active).sum() / max(self.active.sum(), 1))
 
+    @property
+    def reading_fractions(self) -> np.ndarray | None:
+        """[k]: the fraction of steps on which each instrument was read (None without instruments)."""
+        if self.readings is None:
+            return None
+        return (self.readings & self.active[..., None]).sum((0, 1)) / max(self.active.sum(), 1)
+
     def grid(self) -> np.ndarray:
-        """[episodes, max_steps] of NOT_MEASURED (0), MEASURED (1), OVER (2)."""
+        """[episodes, max_steps] of NOT_MEASURED (0), MEASURED (1), OVER (2); with two instruments the reading
+        mask 0-3 (bit j: instrument j read) and 4 for episode over."""
+        if self.readings is not None and self.readings.shape[-1] == 2:
+            mask = self.readings[..., 0].astype(int) + 2 * self.readings[..., 1].astype(int)
+            return np.where(self.active, mask, len(INSTRUMENT_COLORS) - 1)
         return np.where(self.active, self.measured.astype(int), OVER)
 
 
@@ -88,6 +104,8 @@ def _scan(
             "reward": jnp.where(running, reward, 0.0),
             "raw_reward": jnp.where(running, info["raw_reward"], 0.0),
         }
+        if "readings" in info:
+            record["readings"] = info["readings"] & running[:, None]
         return (EnvBatch(obs, state, done), agent_carry, running & ~done), record
 
     _, steps = jax.lax.scan(one_step, (batch, carry, running), jax.random.split(run_key, max_steps))
@@ -101,6 +119,7 @@ def _to_map(steps: dict[str, jax.Array]) -> MeasurementMap:
         active=np.asarray(steps["active"], bool),
         costed_return=np.asarray(steps["reward"]).sum(axis=1),
         raw_return=np.asarray(steps["raw_reward"]).sum(axis=1),
+        readings=np.asarray(steps["readings"], bool) if "readings" in steps else None,
     )
 
 
@@ -150,11 +169,13 @@ def plot_measurement_map(
     *,
     title: str | None = None,
     path: str | Path | None = None,
+    instrument_names: tuple[str, str] | None = None,
 ) -> Figure:
     """Grid of episodes (rows) x time steps (columns): measured, not measured, or episode over.
 
     `maps` is one map or a mapping label -> map (one panel each, stacked, e.g. one per cost). Each panel's title
-    gives the measured fraction and the mean costed return.
+    gives the measured fraction and the mean costed return. Maps of an env with two instruments colour which
+    were read (`instrument_names` label them; default "instrument 1" / "instrument 2").
     """
     panels = {"": maps} if isinstance(maps, MeasurementMap) else dict(maps)
     if not panels:
@@ -162,20 +183,29 @@ def plot_measurement_map(
     height = sum(0.6 + 0.22 * m.measured.shape[0] for m in panels.values())
     fig = Figure(figsize=(9.0, max(2.4, height)), layout="constrained")
     axes = fig.subplots(len(panels), 1, squeeze=False).ravel()
-    cmap = ListedColormap(MAP_COLORS)
+    paired = all(m.readings is not None and m.readings.shape[-1] == 2 for m in panels.values())
+    colors = INSTRUMENT_COLORS if paired else MAP_COLORS
+    names = instrument_names or ("instrument 1", "instrument 2")
+    cmap = ListedColormap(colors)
     for ax, (label, mmap) in zip(axes, panels.items(), strict=True):
         episodes, steps = mmap.measured.shape
-        ax.imshow(mmap.grid(), cmap=cmap, vmin=0, vmax=2, aspect="auto", interpolation="nearest",
+        ax.imshow(mmap.grid(), cmap=cmap, vmin=0, vmax=len(colors) - 1, aspect="auto", interpolation="nearest",
                   extent=(-0.5, steps - 0.5, episodes - 0.5, -0.5))
-        stats = (f"measured {mmap.measured_fraction:.0%} of steps, "
-                 f"mean costed return {float(np.mean(mmap.costed_return)):.1f}")
+        stats = f"measured {mmap.measured_fraction:.0%} of steps"
+        if paired:
+            stats += " (" + ", ".join(f"{n} {f:.0%}" for n, f in zip(names, mmap.reading_fractions, strict=True)) + ")"
+        stats += f", mean costed return {float(np.mean(mmap.costed_return)):.1f}"
         ax.set_title(f"{label}: {stats}" if label else stats, fontsize="medium")
         ax.set_ylabel("episode")
         ax.set_yticks(range(episodes), [str(i + 1) for i in range(episodes)], fontsize="x-small")
     axes[-1].set_xlabel("time step")
-    handles = [Patch(color=MAP_COLORS[i], label=name)
-               for i, name in ((MEASURED, "measured"), (NOT_MEASURED, "not measured"), (OVER, "episode over"))]
-    fig.legend(handles=handles, loc="outside lower center", ncols=3, fontsize="small")
+    if paired:
+        labels = ("not measured", f"{names[0]} only", f"{names[1]} only", "both", "episode over")
+        handles = [Patch(color=c, label=n) for c, n in zip(INSTRUMENT_COLORS, labels, strict=True)]
+    else:
+        handles = [Patch(color=MAP_COLORS[i], label=name)
+                   for i, name in ((MEASURED, "measured"), (NOT_MEASURED, "not measured"), (OVER, "episode over"))]
+    fig.legend(handles=handles, loc="outside lower center", ncols=len(handles), fontsize="small")
     if title:
         fig.suptitle(title)
     if path is not None:

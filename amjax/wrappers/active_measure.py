@@ -20,6 +20,12 @@ Options beyond the paper (each off by default; off, the state, observation and r
 - `reward_timing="on_measure"`: the raw reward of an unmeasured step is withheld and paid, summed, at the next
   measurement or at the episode's end (for outcomes known only when looked at). `info["raw_reward"]` is what was
   paid, so episode totals are unchanged; `info["withheld"]` is what is still owed.
+- `instruments`: the observation split into k instruments read separately (`amjax/wrappers/instruments.py`: the
+  action encoding, defaults per env). Each has a flag (k flags replace the one), a price
+  (`MeasureParams.instrument_costs`) and a reading noise std (`MeasureParams.instrument_noise`, Gaussian, clipped
+  to the observation's bounds); `cost` is then charged once per step on which any instrument is read (the cost of
+  taking a sample at all), and "since_measured" counts per instrument. `info["readings"]` holds the k choices
+  carried out; `info["measured"]` is whether any was. The budget counts readings.
 Keys: in mode "last" `step` hands its key to the inner environment unchanged (always measuring is then exactly
 the plain environment under the same keys); the other modes split it into the inner env's key and the view's.
 
@@ -40,6 +46,12 @@ from gymnax.environments.environment import Environment
 from gymnax.wrappers.purerl import GymnaxWrapper
 
 from amjax.validation import check_bool, check_choice
+from amjax.wrappers.instruments import (
+    check_instruments,
+    decode_mask,
+    feature_owner,
+    served_readings,
+)
 
 MODES = ("last", "random", "noisy")
 EXTRA_OBS = ("since_measured", "last_action")
@@ -56,6 +68,8 @@ class MeasureParams:
     cost: jax.Array  # charged per measurement, subtracted from the reward
     noise_std: jax.Array  # std of the observation noise in mode "noisy" (unused otherwise)
     budget: Any = None  # paid measurements allowed per episode (a wrapper with budgeted=True only)
+    instrument_costs: Any = None  # [k] price of reading each instrument (a wrapper with instruments only)
+    instrument_noise: Any = None  # [k] std of each instrument's reading noise (a wrapper with instruments only)
 
 
 @struct.dataclass
@@ -65,7 +79,7 @@ class MeasureState:
 
     env_state: Any
     last_obs: jax.Array
-    since_measured: Any = None  # steps since the last measurement ("since_measured")
+    since_measured: Any = None  # steps since the last measurement ("since_measured"; [k] with instruments)
     last_control: Any = None  # the last control action, one-hot for Discrete ("last_action")
     measurements: Any = None  # paid measurements this episode (budgeted)
     withheld: Any = None  # raw reward not yet paid (reward_timing="on_measure")
@@ -107,6 +121,7 @@ class ActiveMeasure(GymnaxWrapper):
         extra_obs: tuple[str, ...] = (),
         budgeted: bool = False,
         reward_timing: str = "immediate",
+        instruments: tuple[tuple[int, ...], ...] = (),
     ):
         super().__init__(env)
         check_choice("mode", mode, MODES)
@@ -139,11 +154,18 @@ class ActiveMeasure(GymnaxWrapper):
                 f"env: the active-measure wrapper needs a Box observation space, got "
                 f"{type(obs_space).__name__}; allowed: Box"
             )
-        if (flag or extra_obs or budgeted) and len(obs_space.shape) != 1:
+        if (flag or extra_obs or budgeted or instruments) and len(obs_space.shape) != 1:
             raise TypeError(
-                f"flag=True (and extra_obs, budgeted) append to a 1-D observation, but its shape is "
+                f"flag=True (and extra_obs, budgeted, instruments) need a 1-D observation, but its shape is "
                 f"{obs_space.shape}; use flag=False or flatten the observation"
             )
+        self.instruments = check_instruments(instruments, obs_space.shape[0] if instruments else 0)
+        self._owner = feature_owner(self.instruments)  # [features]: the instrument reading each
+
+    @property
+    def num_instruments(self) -> int:
+        """Measure choices per step: k instruments, or 1 (the paper's single switch)."""
+        return max(1, len(self.instruments))
 
     @property
     def _appends(self) -> bool:
@@ -159,21 +181,22 @@ class ActiveMeasure(GymnaxWrapper):
 
     @property
     def num_actions(self) -> int:
-        """2n for Discrete(n); for Box(d), the action dimension 1 + d (as gymnax counts it)."""
+        """2n for Discrete(n) (n 2^k with k instruments); for Box(d), the action dimension 1 + d (k + d)."""
         if isinstance(self._inner_action_space, spaces.Discrete):
-            return 2 * self.num_controls
-        return 1 + self._inner_action_space.shape[0]
+            return 2**self.num_instruments * self.num_controls
+        return self.num_instruments + self._inner_action_space.shape[0]
 
     def action_space(self, params: MeasureParams | None = None) -> spaces.Space:
         inner = self._env.action_space(None if params is None else params.env_params)
+        k = self.num_instruments
         if isinstance(inner, spaces.Discrete):
-            return spaces.Discrete(2 * inner.n)
+            return spaces.Discrete(2**k * inner.n)
         low = jnp.broadcast_to(jnp.asarray(inner.low, jnp.float32), inner.shape)
         high = jnp.broadcast_to(jnp.asarray(inner.high, jnp.float32), inner.shape)
         return spaces.Box(
-            jnp.concatenate([jnp.zeros(1), low]),
-            jnp.concatenate([jnp.ones(1), high]),
-            (inner.shape[0] + 1,),
+            jnp.concatenate([jnp.zeros(k), low]),
+            jnp.concatenate([jnp.ones(k), high]),
+            (inner.shape[0] + k,),
             jnp.float32,
         )
 
@@ -187,7 +210,8 @@ class ActiveMeasure(GymnaxWrapper):
         params = self.default_params if params is None else params
         low, high = self._obs_bounds(params)
         if self.flag:
-            low, high = jnp.append(low, 0.0), jnp.append(high, 1.0)
+            k = self.num_instruments
+            low, high = jnp.append(low, jnp.zeros(k)), jnp.append(high, jnp.ones(k))
         if self._appends:
             extra_low, extra_high = self._extra_bounds(params)
             low, high = jnp.concatenate([low, extra_low]), jnp.concatenate([high, extra_high])
@@ -202,7 +226,7 @@ class ActiveMeasure(GymnaxWrapper):
                 low.append(jnp.broadcast_to(jnp.asarray(inner.low, jnp.float32), inner.shape))
                 high.append(jnp.broadcast_to(jnp.asarray(inner.high, jnp.float32), inner.shape))
             else:
-                size = self.num_controls if name == "last_action" else 1
+                size = self.num_controls if name == "last_action" else self.num_instruments
                 low.append(jnp.zeros(size))
                 high.append(jnp.ones(size))
         if self.budgeted:
@@ -217,6 +241,8 @@ class ActiveMeasure(GymnaxWrapper):
             cost=jnp.float32(0.0),
             noise_std=jnp.float32(0.0),
             budget=jnp.float32(jnp.inf) if self.budgeted else None,
+            instrument_costs=jnp.zeros(len(self.instruments)) if self.instruments else None,
+            instrument_noise=jnp.zeros(len(self.instruments)) if self.instruments else None,
         )
 
     @property
@@ -226,16 +252,25 @@ class ActiveMeasure(GymnaxWrapper):
     # -- dynamics -------------------------------------------------------------------------------
 
     def split_action(self, action: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(control action for the inner env, measure flag) of a wrapped action."""
+        """(control action for the inner env, measure flag) of a wrapped action; with instruments the flag is
+        [k], one per instrument."""
+        k = len(self.instruments)
         if isinstance(self._inner_action_space, spaces.Discrete):
-            return decode_discrete(action, self.num_controls)
+            if not k:
+                return decode_discrete(action, self.num_controls)
+            action = jnp.asarray(action, jnp.int32) % self.num_actions
+            return action % self.num_controls, decode_mask(action // self.num_controls, k)
         action = jnp.asarray(action, jnp.float32)
-        return action[1:], action[0] >= 0.5
+        if not k:
+            return action[1:], action[0] >= 0.5
+        return action[k:], action[:k] >= 0.5
 
     def _with_flag(self, obs: jax.Array, fresh: jax.Array) -> jax.Array:
         obs = jnp.asarray(obs, jnp.float32)
         if not self.flag:
             return obs
+        if self.instruments:  # one flag per instrument
+            return jnp.concatenate([obs, jnp.broadcast_to(jnp.asarray(fresh, jnp.float32), (len(self.instruments),))])
         # Pad, then write the flag with a select: XLA fuses this with the surrounding selects, whereas a
         # concatenate with a traced flag is a separate, unvectorised pass over a [batch, d + 1] array on CPU
         # (it made a batch of wrapped CartPole steps 1.7x slower than the plain env).
@@ -262,8 +297,9 @@ class ActiveMeasure(GymnaxWrapper):
             last_control = jnp.zeros(self.num_controls, jnp.float32)
         else:
             last_control = jnp.zeros(self._inner_action_space.shape, jnp.float32)
+        since = jnp.zeros(len(self.instruments), jnp.int32) if self.instruments else zero  # per instrument
         return {
-            "since_measured": zero if "since_measured" in self.extra_obs else None,
+            "since_measured": since if "since_measured" in self.extra_obs else None,
             "last_control": last_control,
             "measurements": zero if self.budgeted else None,
             "withheld": jnp.float32(0.0) if self.reward_timing == "on_measure" else None,
@@ -279,7 +315,7 @@ class ActiveMeasure(GymnaxWrapper):
             if name == "since_measured":
                 horizon = jnp.asarray(params.env_params.max_steps_in_episode, jnp.float32)
                 since = jnp.log1p(counters["since_measured"].astype(jnp.float32)) / jnp.log1p(horizon)
-                features.append(jnp.minimum(since, 1.0)[None])
+                features.append(jnp.minimum(since, 1.0).reshape(-1))
             else:
                 features.append(counters["last_control"])
         if self.budgeted:
@@ -311,37 +347,53 @@ class ActiveMeasure(GymnaxWrapper):
             key_env = key_view = key
         else:
             key_env, key_view = jax.random.split(key)
-        control, measured = self.split_action(action)
+        control, measured = self.split_action(action)  # measured: [k] with instruments
         if self.budgeted:
             requested = measured
-            measured = requested & (state.measurements < params.budget)
+            if self.instruments:
+                measured = served_readings(requested, state.measurements, params.budget)
+            else:
+                measured = requested & (state.measurements < params.budget)
         obs, env_state, raw_reward, terminated, truncated, info = self._env.step(
             key_env, state.env_state, control, params.env_params
         )
         done = jnp.logical_or(terminated, truncated)
         true_obs = jnp.asarray(info["final_observation"], jnp.float32)  # before any auto-reset
         unmeasured = self._unmeasured_view(key_view, state.last_obs, true_obs, params)
-        seen = jnp.where(measured, true_obs, unmeasured)
-        remembered = jnp.where(measured, true_obs, state.last_obs)
+        if self.instruments:  # each feature refreshes with its instrument, read with that instrument's noise
+            any_read = measured.any()
+            fresh = measured[self._owner]
+            low, high = self._obs_bounds(params)
+            noise = params.instrument_noise[self._owner] * jax.random.normal(jax.random.fold_in(key, 1),
+                                                                             true_obs.shape)
+            reading = jnp.clip(true_obs + noise, low, high)
+            cost = params.cost * any_read + (params.instrument_costs * measured).sum()
+        else:
+            any_read = fresh = measured
+            reading = true_obs
+            cost = params.cost * measured
+        seen = jnp.where(fresh, reading, unmeasured)
+        remembered = jnp.where(fresh, reading, state.last_obs)
         # On an episode boundary the auto-reset's first observation is a free measurement.
         reset_obs = jnp.asarray(obs, jnp.float32)
-        cost = params.cost * measured
         raw_reward = jnp.asarray(raw_reward, jnp.float32)
         counters = self._counters_after(state, control, measured)
         paid = raw_reward
         if self.reward_timing == "on_measure":  # owed rewards are paid on a measurement or at the episode's end
             owed = state.withheld + raw_reward
-            paid = jnp.where(measured | done, owed, 0.0)
+            paid = jnp.where(any_read | done, owed, 0.0)
             counters["withheld"] = owed - paid
         shown = self._observe(seen, measured, counters, params)  # the pre-reset observation
         fresh_counters = self._initial_counters()
         next_counters = jax.tree.map(lambda start, now: jnp.where(done, start, now), fresh_counters, counters)
-        if self._appends:
+        if self._appends or self.instruments:
             next_obs = jnp.where(done, self._observe(reset_obs, True, fresh_counters, params), shown)
         else:  # the paper's observation, in the form XLA fuses best (see `_with_flag`)
             next_obs = self._with_flag(jnp.where(done, reset_obs, seen), done | measured)
         next_state = MeasureState(env_state, jnp.where(done, reset_obs, remembered), **next_counters)
-        info = {**info, "final_observation": shown, "cost": cost, "measured": measured, "raw_reward": paid}
+        info = {**info, "final_observation": shown, "cost": cost, "measured": any_read, "raw_reward": paid}
+        if self.instruments:
+            info["readings"] = measured
         if self.reward_timing == "on_measure":
             info["withheld"] = counters["withheld"]
         if self.budgeted:
@@ -360,7 +412,7 @@ class ActiveMeasure(GymnaxWrapper):
             else:
                 counters["last_control"] = jnp.asarray(control, jnp.float32)
         if counters["measurements"] is not None:
-            counters["measurements"] = state.measurements + measured.astype(jnp.int32)
+            counters["measurements"] = state.measurements + measured.astype(jnp.int32).sum()
         return counters
 
 

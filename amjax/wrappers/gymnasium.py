@@ -27,6 +27,7 @@ from gymnax.environments import spaces as gymnax_spaces
 
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 from amjax.wrappers.active_measure import MODES, REWARD_TIMINGS, UNBOUNDED, check_extra_obs
+from amjax.wrappers.instruments import check_instruments, feature_owner
 
 __all__ = ["ActiveMeasureWrapper", "GymnasiumEnv", "gymnasium_space", "to_gymnasium"]
 
@@ -135,6 +136,11 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
       noise_std: standard deviation for mode "noisy" (required there, refused elsewhere).
       extra_obs, budget, reward_timing: the options of `amjax.make`, with the same meaning and observation layout
         ("since_measured" scales by the env's time limit, `env.spec.max_episode_steps`, which it then needs).
+      instruments, instrument_costs, instrument_noise: `amjax.make`'s instruments (a tuple of observation-index
+        tuples; "default" needs the env id, so pass the indices), their prices and reading noise (k numbers each,
+        default zeros). The action encoding and layout are the JAX wrapper's; `info["readings"]` holds the k
+        readings made. Reading noise is drawn from the wrapper's own generator, so it matches the JAX wrapper
+        in distribution, not draw for draw.
     """
 
     def __init__(
@@ -147,6 +153,9 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         extra_obs: tuple[str, ...] = (),
         budget: Any = None,
         reward_timing: str = "immediate",
+        instruments: tuple[tuple[int, ...], ...] = (),
+        instrument_costs: Any = None,
+        instrument_noise: Any = None,
     ):
         super().__init__(env)
         self.cost, self.noise_std = check_measure_args(cost, mode, flag, noise_std)
@@ -162,10 +171,30 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
                              "none (env.spec.max_episode_steps); wrap it in gymnasium's TimeLimit first")
         inner_action = env.action_space
         inner_obs = env.observation_space
+        if not isinstance(inner_obs, gym_spaces.Box):
+            raise TypeError(
+                f"env: the active-measure wrapper needs a Box observation space, got "
+                f"{type(inner_obs).__name__}; allowed: Box"
+            )
+        if (self.flag or self.extra_obs or self.budget is not None or instruments) and len(inner_obs.shape) != 1:
+            raise TypeError(
+                f"flag=True (and extra_obs, budget, instruments) need a 1-D observation, but its shape is "
+                f"{inner_obs.shape}; use flag=False or flatten the observation"
+            )
+        self.instruments = check_instruments(instruments, inner_obs.shape[0] if instruments else 0)
+        # Measure choices per step (1: the paper's switch, which reads every feature) and the one reading each
+        # feature.
+        self._readings = max(1, len(self.instruments))
+        self._owner = feature_owner(self.instruments) if self.instruments else np.zeros(inner_obs.shape, np.int32)
+        self.instrument_costs, self.instrument_noise = (
+            self._per_instrument(name, value)
+            for name, value in (("instrument_costs", instrument_costs), ("instrument_noise", instrument_noise))
+        )
+        masks = 2**self._readings
         if isinstance(inner_action, gym_spaces.Discrete):
             self._num_controls = int(inner_action.n)
             self._start = int(inner_action.start)
-            self.action_space = gym_spaces.Discrete(2 * inner_action.n, start=inner_action.start)
+            self.action_space = gym_spaces.Discrete(masks * inner_action.n, start=inner_action.start)
         elif isinstance(inner_action, gym_spaces.Box):
             if len(inner_action.shape) != 1 or inner_action.dtype.kind != "f":
                 raise TypeError(
@@ -174,8 +203,8 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
                 )
             dtype = inner_action.dtype
             self.action_space = gym_spaces.Box(
-                np.concatenate([np.zeros(1, dtype), inner_action.low]),
-                np.concatenate([np.ones(1, dtype), inner_action.high]),
+                np.concatenate([np.zeros(self._readings, dtype), inner_action.low]),
+                np.concatenate([np.ones(self._readings, dtype), inner_action.high]),
                 dtype=dtype,
             )
         else:
@@ -184,27 +213,17 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
                 f"{type(inner_action).__name__}; allowed: Discrete, Box"
             )
         self._inner_action_space = inner_action
-        if not isinstance(inner_obs, gym_spaces.Box):
-            raise TypeError(
-                f"env: the active-measure wrapper needs a Box observation space, got "
-                f"{type(inner_obs).__name__}; allowed: Box"
-            )
-        if (self.flag or self.extra_obs or self.budget is not None) and len(inner_obs.shape) != 1:
-            raise TypeError(
-                f"flag=True (and extra_obs, budget) append to a 1-D observation, but its shape is "
-                f"{inner_obs.shape}; use flag=False or flatten the observation"
-            )
         with np.errstate(over="ignore"):  # float64 bounds beyond float32's range become +-inf
             self._low = inner_obs.low.astype(np.float32)
             self._high = inner_obs.high.astype(np.float32)
         low, high = self._low, self._high
         if self.flag:
-            low, high = np.append(low, np.float32(0.0)), np.append(high, np.float32(1.0))
+            low, high = np.append(low, np.zeros(self._readings)), np.append(high, np.ones(self._readings))
         for name in self.extra_obs:
             if name == "last_action" and isinstance(inner_action, gym_spaces.Box):
                 low, high = np.append(low, inner_action.low), np.append(high, inner_action.high)
             else:
-                size = self._num_controls if name == "last_action" else 1
+                size = self._num_controls if name == "last_action" else self._readings
                 low, high = np.append(low, np.zeros(size)), np.append(high, np.ones(size))
         if self.budget is not None:
             low, high = np.append(low, 0.0), np.append(high, 1.0)
@@ -213,9 +232,21 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         self._view_rng: np.random.Generator | None = None
         self._restart_counters()
 
+    def _per_instrument(self, name: str, value: Any) -> np.ndarray:
+        """k numbers >= 0 (zeros if None); ValueError naming `name` otherwise."""
+        k = len(self.instruments)
+        if value is None:
+            return np.zeros(self._readings)
+        if not k:
+            raise ValueError(f"{name}: only with instruments (there are none; set instruments first)")
+        array = check_real(name, value, low=0.0)
+        if array.shape != (k,):
+            raise ValueError(f"{name}: got {value!r}; allowed values: {k} finite numbers >= 0, one per instrument")
+        return array
+
     def _restart_counters(self) -> None:
-        """The options' counters at an episode's start."""
-        self._since, self._used, self._owed = 0, 0, 0.0
+        """The options' counters at an episode's start (`_since` per instrument)."""
+        self._since, self._used, self._owed = np.zeros(self._readings, np.int64), 0, 0.0
         if isinstance(self._inner_action_space, gym_spaces.Discrete):
             self._last_control = np.zeros(self._num_controls, np.float32)
         else:
@@ -226,7 +257,7 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         features = [self._with_flag(obs, fresh)]
         for name in self.extra_obs:
             if name == "since_measured":
-                features.append([min(np.log1p(self._since) / np.log1p(self._horizon), 1.0)])
+                features.append(np.minimum(np.log1p(self._since) / np.log1p(self._horizon), 1.0))
             else:
                 features.append(self._last_control)
         if self.budget is not None:
@@ -234,18 +265,20 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
             features.append([min(max(left, 0.0), 1.0)])
         return np.concatenate(features, dtype=np.float32) if len(features) > 1 else features[0]
 
-    def split_action(self, action: Any) -> tuple[Any, bool]:
-        """(control for the inner env, measure flag) of a wrapped action; ValueError if invalid."""
+    def split_action(self, action: Any) -> tuple[Any, np.ndarray]:
+        """(control for the inner env, the readings requested: one bool per instrument, or one) of a wrapped
+        action; ValueError if invalid."""
         action = check_action(self.action_space, action)
+        k = self._readings
         if isinstance(self._inner_action_space, gym_spaces.Discrete):
-            offset = action - self._start
-            measured = offset >= self._num_controls
-            return self._start + offset - self._num_controls * measured, bool(measured)
-        return action[1:], bool(action[0] >= 0.5)
+            mask, control = divmod(int(action) - self._start, self._num_controls)
+            return self._start + control, (mask >> np.arange(k)) & 1 == 1
+        return action[k:], np.asarray(action[:k] >= 0.5)
 
-    def _with_flag(self, obs: np.ndarray, fresh: bool) -> np.ndarray:
+    def _with_flag(self, obs: np.ndarray, fresh: Any) -> np.ndarray:
         # A copy either way: a caller mutating the observation must not touch the memory.
-        return np.append(obs, np.float32(fresh)) if self.flag else obs.copy()
+        flags = np.broadcast_to(np.asarray(fresh, np.float32), (self._readings,))
+        return np.append(obs, flags) if self.flag else obs.copy()
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -267,38 +300,49 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         """Step with a wrapped action; see the class docstring for what is seen and charged."""
         if self._last_obs is None or self._view_rng is None:
             raise RuntimeError("step: call reset() before the first step")
-        control, measured = self.split_action(action)
-        refused = measured and self.budget is not None and self._used >= self.budget
-        measured = measured and not refused
+        control, requested = self.split_action(action)
+        readings = requested.copy()
+        if self.budget is not None:  # instruments are served in their order while the budget lasts
+            before = self._used + np.cumsum(requested) - requested
+            readings &= before < self.budget
+        measured = bool(readings.any())
         obs, raw_reward, terminated, truncated, info = self.env.step(control)
         true_obs = np.array(obs, np.float32)  # a copy: envs may reuse their buffers
-        if measured:
-            seen = self._last_obs = true_obs
-        elif self.mode == "last":
-            seen = self._last_obs
+        if self.mode == "last":
+            unmeasured = self._last_obs
         elif self.mode == "random":
-            seen = sample_box(self._view_rng, self._low, self._high).astype(np.float32)
+            unmeasured = sample_box(self._view_rng, self._low, self._high).astype(np.float32)
         else:
             noise = self.noise_std * self._view_rng.standard_normal(true_obs.shape)
-            seen = np.clip(true_obs + noise, self._low, self._high).astype(np.float32)
+            unmeasured = np.clip(true_obs + noise, self._low, self._high).astype(np.float32)
+        fresh = readings[self._owner]
+        reading = true_obs
+        if self.instrument_noise.any():
+            noise = self.instrument_noise[self._owner] * self._view_rng.standard_normal(true_obs.shape)
+            reading = np.clip(true_obs + noise, self._low, self._high).astype(np.float32)
+        seen = np.where(fresh, reading, unmeasured).astype(np.float32)
+        self._last_obs = np.where(fresh, reading, self._last_obs).astype(np.float32)
         raw_reward = float(raw_reward)
-        cost = self.cost if measured else 0.0
-        self._since = 0 if measured else self._since + 1
-        self._used += measured
+        cost = self.cost * measured + float(self.instrument_costs @ readings) if measured else 0.0
+        self._since = np.where(readings, 0, self._since + 1)
+        self._used += int(readings.sum())
         if isinstance(self._inner_action_space, gym_spaces.Discrete):
             self._last_control = np.eye(self._num_controls, dtype=np.float32)[control - self._start]
         else:
             self._last_control = np.asarray(control, np.float32)
         info = {**info, "cost": cost, "measured": measured}
+        if self.instruments:
+            info["readings"] = readings
         if self.reward_timing == "on_measure":
             self._owed += raw_reward
             raw_reward = self._owed if (measured or terminated or truncated) else 0.0
             self._owed -= raw_reward
             info["withheld"] = self._owed
         if self.budget is not None:
-            info["refused"] = refused
+            refused = requested & ~readings
+            info["refused"] = refused if self.instruments else bool(refused[0])
         info["raw_reward"] = raw_reward
-        return self._observe(seen, measured), raw_reward - cost, terminated, truncated, info
+        return self._observe(seen, readings), raw_reward - cost, terminated, truncated, info
 
 
 # -- 2. amjax / gymnax environments as Gymnasium environments -------------------------------------

@@ -160,6 +160,23 @@ def test_seeds_determinism_and_vmap_equals_alone(name):
     assert not np.array_equal(np.asarray(first.loss), np.asarray(other.loss))
 
 
+@pytest.mark.parametrize("name", ["dqn", "ppo-box"])
+def test_instrument_prices_vmap_equals_alone(name):
+    """Instruments' prices are traced: a batch of prices is one program, config i in it equals config i alone
+    (CartPole's cart and pole; Pendulum's angle and rate, two Bernoulli measure entries)."""
+    instruments = ((0, 1), (2,)) if name == "ppo-box" else "default"
+    base = TINY[name].replace(instruments=instruments)
+    configs = [base.replace(cost=c, instrument_costs=p) for c, p in [(0.0, (0.05, 0.3)), (0.1, (0.3, 0.0))]]
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)])
+    stacked = stack_configs([c.validate() for c in configs])
+    _, rows = _compiled(name)[1](stacked, keys)
+    for i in range(2):
+        _, alone = _run(name, unstack_config(stacked, i), keys[i])
+        for field in ("eval_return", "train_return", "loss", "eval_measurements"):
+            np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
+    assert np.all(np.isfinite(rows.columns()["loss"]))
+
+
 @pytest.mark.parametrize("name", ["ppo", "dqn"])
 def test_divergent_configuration_is_flagged_alone(name):
     configs = [TINY[name].replace(learning_rate=lr, max_grad_norm=1e30) for lr in (1e-3, 1e30, 3e-4)]
