@@ -50,17 +50,25 @@ MAP_KEY = 20_261_125  # their key: apart from the sweep's training and evaluatio
 
 
 def read_fractions(out: Path, summary: pd.DataFrame) -> pd.DataFrame:
-    """Per configuration: each instrument's read fraction and the costed return over fresh test episodes of its
-    saved best policy."""
+    """Per configuration: each instrument's read fraction, the costed return and the mean episode length over
+    fresh test episodes of its saved best policy (a vanilla run reads everything)."""
     rows = []
     for config_id in summary["config_id"]:
         policy = load_sweep_policy(out, config_id)
         mmap = record_agent(policy.config, policy.params, jax.random.key(MAP_KEY), MAP_EPISODES)
-        first, second = mmap.reading_fractions
+        first, second = (1.0, 1.0) if policy.config.vanilla else mmap.reading_fractions
         rows.append({"config_id": config_id, "read_first": first, "read_second": second,
                      "fresh_return": float(np.mean(mmap.costed_return)),
-                     "fresh_measured": mmap.measured_fraction})
+                     "fresh_measured": mmap.measured_fraction, "fresh_length": float(np.mean(mmap.lengths))})
     return summary.merge(pd.DataFrame(rows), on="config_id")
+
+
+def always_read_bound(rows: pd.DataFrame, prices: str, cost: float) -> float:
+    """The vanilla policies' median re-scored return minus the price of reading every instrument on every step
+    of their episodes: what always reading everything would score."""
+    vanilla = rows[rows.vanilla]
+    per_step = cost + sum(float(p) for p in prices.split("x"))
+    return float((vanilla.best_policy_return - per_step * vanilla.fresh_length).median())
 
 
 def _cheaper_read_more(rows: pd.DataFrame) -> pd.Series:
@@ -71,15 +79,19 @@ def _cheaper_read_more(rows: pd.DataFrame) -> pd.Series:
 
 
 def table(rows: pd.DataFrame, names: tuple[str, str]) -> pd.DataFrame:
-    """Medians over seeds per agent and prices."""
+    """Medians over seeds per agent and prices, with the always-read bound of the vanilla runs."""
     columns = {"best_return": "best costed reward", "best_policy_return": "re-scored",
                "fresh_measured": "any read", "read_first": f"{names[0]} read", "read_second": f"{names[1]} read"}
-    rows = rows.assign(cheaper_more=_cheaper_read_more(rows))
-    grouped = rows.groupby(["agent", "instrument_costs"], as_index=False)
+    measured = rows[~rows.vanilla]
+    measured = measured.assign(cheaper_more=_cheaper_read_more(measured))
+    grouped = measured.groupby(["agent", "instrument_costs"], as_index=False)
     medians = grouped[list(columns)].median().rename(columns=columns)
     medians.insert(2, "seeds", grouped.size()["size"])
     counts = grouped["cheaper_more"].agg(lambda x: f"{int(x.sum())}/{len(x)}")
     medians.insert(2, "cheaper read more often", counts["cheaper_more"])
+    medians.insert(6, "always-read bound", [
+        always_read_bound(rows[rows.agent == agent], prices, float(measured.cost.iloc[0]))
+        for agent, prices in zip(medians.agent, medians.instrument_costs, strict=True)])
     return medians.rename(columns={"instrument_costs": f"prices ({names[0]} x {names[1]})"})
 
 
@@ -98,7 +110,8 @@ def main() -> None:
     out = Path(args.out)
     spec = SweepSpec(
         envs=(env_id,), agents=agents, costs=costs, seeds=tuple(range(seeds)), total_timesteps=steps,
-        eval_every=every, hyperparams={"instruments": "default", "instrument_costs": list(prices)},
+        eval_every=every, vanilla=True,
+        hyperparams={"instruments": "default", "instrument_costs": list(prices)},
         env_defaults={env_id: env_hyperparams(env_id, agents)},
     )
     start = time.perf_counter()
@@ -110,7 +123,7 @@ def main() -> None:
     text = to_markdown(result)
     (out / "table.md").write_text(text + "\n")
     print(text)
-    for (agent, price), group in rows.groupby(["agent", "instrument_costs"]):
+    for (agent, price), group in rows[~rows.vanilla].groupby(["agent", "instrument_costs"]):
         median = group.iloc[(group["best_policy_return"] - group["best_policy_return"].median()).abs().argmin()]
         policy = load_sweep_policy(out, median["config_id"])
         mmap = record_agent(policy.config, policy.params, jax.random.key(MAP_KEY), 10)

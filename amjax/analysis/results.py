@@ -21,6 +21,7 @@ import pandas as pd
 
 from amjax.agents.registry import ALGORITHMS, algorithm
 from amjax.sweep import storage
+from amjax.sweep.grid import MEASURE_FIELDS
 
 SETTING = ["env", "agent", "vanilla", "cost"]
 # Columns the runner writes itself; any other column of results.parquet is a swept hyperparameter.
@@ -173,26 +174,36 @@ def agent_config(metadata: dict[str, Any], agent: str, env: str | None = None, *
 
 
 def _planned_configs(spec: dict[str, Any]) -> int | None:
-    """Configurations in a sweep spec (as stored in metadata.json, where tuples became lists)."""
+    """Configurations in a sweep spec (as stored in metadata.json, where tuples became lists); vanilla runs are not
+    multiplied by the active-measure fields (`amjax.sweep.grid.MEASURE_FIELDS`), as the grid does."""
     try:
-        settings = len(spec["costs"]) + bool(spec.get("vanilla"))
         total = 0
         for agent in spec["agents"]:
             fields = ALGORITHMS[agent].config_type.__dataclass_fields__ if agent in ALGORITHMS else None
-            count = 1
+            costed = plain = 1
             for key, value in spec.get("hyperparams", {}).items():
                 scope, _, name = key.rpartition(".")
                 if (fields is not None and name not in fields) or scope not in ("", agent):
                     continue
                 if not scope and f"{agent}.{name}" in spec["hyperparams"]:
                     continue  # the agent's own value replaces the shared one
-                sequence_field = fields is not None and isinstance(fields[name].default, tuple)
-                swept = isinstance(value, list) and (not sequence_field or all(isinstance(v, list) for v in value))
-                count *= len(value) if swept else 1
-            total += count
-        return len(spec["envs"]) * settings * len(spec["seeds"]) * total
+                count = len(value) if _is_swept(name, value, fields) else 1
+                costed *= count
+                plain *= 1 if name in MEASURE_FIELDS else count
+            total += len(spec["costs"]) * costed + bool(spec.get("vanilla")) * plain
+        return len(spec["envs"]) * len(spec["seeds"]) * total
     except (KeyError, TypeError):
         return None
+
+
+def _is_swept(name: str, value: Any, fields: dict[str, Any] | None) -> bool:
+    """Whether a stored hyperparameter value is a list of values (tuple-valued fields were stored as lists)."""
+    if not isinstance(value, list):
+        return False
+    if name == "instruments":  # one value: "default" or a list of index lists
+        return all(v == "default" or (isinstance(v, list) and all(isinstance(w, list) for w in v)) for v in value)
+    sequence_field = fields is not None and isinstance(fields[name].default, tuple)
+    return not sequence_field or all(isinstance(v, list) for v in value)
 
 
 def sweep_progress(data: SweepData) -> dict[str, Any]:

@@ -33,10 +33,18 @@ def _memory_probe() -> tuple[Environment, Any]:
     return env, env.default_params
 
 
+def _cstr() -> tuple[Environment, Any]:
+    from amjax.envs.reactor import StirredTankReactor
+
+    env = StirredTankReactor()
+    return env, env.default_params
+
+
 _AMJAX_ENVS: dict[str, EnvFactory] = {
     "CartPole-v0": _cartpole_v0,
     "LunarLander-v3": _lunar_lander,
     "MemoryProbe-v0": _memory_probe,
+    "CSTR-v0": _cstr,
 }
 _CUSTOM_ENVS: dict[str, EnvFactory] = {}
 

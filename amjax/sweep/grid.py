@@ -21,6 +21,9 @@ from amjax.validation import check_choice, check_positive_int, check_real
 SCHEDULE_FIELDS = ("total_timesteps", "eval_every", "eval_episodes")
 # Fields the grid itself sets.
 GRID_FIELDS = ("env_id", "cost", "vanilla")
+# Fields of the active-measure wrapper: a vanilla run (the plain env) takes none, so it is not multiplied by them.
+MEASURE_FIELDS = ("noise_std", "extra_obs", "budgeted", "budget", "reward_timing", "instruments", "instrument_costs",
+                  "instrument_noise")
 
 
 @dataclass(frozen=True)
@@ -32,8 +35,10 @@ class SweepSpec:
     `"ppo.num_envs"`) to that agent only, overriding an unscoped value of the same field. Traced fields (learning
     rate, gamma, ...) are vmapped within one compiled program; static fields (network widths, num_envs, ...) compile
     one program per value. `vanilla` adds, per env, agent and seed, a run on the plain environment (the paper's
-    baseline). `env_defaults` maps an env id to hyperparameter values (same keys as `hyperparams`, one value each)
-    that its configurations start from, e.g. a tuned preset; `hyperparams` override them.
+    baseline; per combination of the other hyperparameters, not of the active-measure ones in `MEASURE_FIELDS`,
+    which a plain env does not take). `env_defaults` maps an env id to hyperparameter values (same keys as
+    `hyperparams`, one value each) that its configurations start from, e.g. a tuned preset; `hyperparams` override
+    them.
 
     Seeds are paired by design: every configuration with seed s starts from `jax.random.PRNGKey(s)`, whatever its
     cost, agent or hyperparameters, so configurations that differ only in cost share their network initialisation,
@@ -248,21 +253,31 @@ def _runs(spec: SweepSpec) -> Iterator[RunConfig]:
         own = {key: _as_values(key, value) for key, value in applies.values()}
         field_of = {key: name for name, (key, _) in applies.items()}
         settings = [(False, float(c)) for c in spec.costs] + ([(True, 0.0)] if spec.vanilla else [])
-        for (vanilla, cost), values, seed in itertools.product(
-            settings, itertools.product(*own.values()), spec.seeds
-        ):
-            hp = dict(zip(own, values, strict=True))
-            config = config_type(
-                env_id=env,
-                mode=spec.mode,
-                vanilla=vanilla,
-                cost=cost,
-                total_timesteps=spec.total_timesteps,
-                eval_every=spec.eval_every,
-                eval_episodes=spec.eval_episodes,
-                **{**defaults, **{field_of[k]: tuple(v) if isinstance(v, list) else v for k, v in hp.items()}},
-            )
-            yield RunConfig(config_id(env, agent, vanilla, cost, seed, hp), agent, seed, hp, config)
+        plain = {key: values for key, values in own.items() if field_of[key] not in MEASURE_FIELDS}
+        for vanilla, cost in settings:
+            swept = plain if vanilla else own
+            yield from _setting_runs(spec, env, agent, config_type, vanilla, cost, swept, field_of,
+                                     {k: v for k, v in defaults.items() if not vanilla or k not in MEASURE_FIELDS})
+
+
+def _setting_runs(
+    spec: SweepSpec, env: str, agent: str, config_type: type, vanilla: bool, cost: float,
+    own: Mapping[str, Any], field_of: Mapping[str, str], defaults: Mapping[str, Any],
+) -> Iterator[RunConfig]:
+    """The runs of one (env, agent, vanilla, cost): every combination of `own`'s values, every seed."""
+    for values, seed in itertools.product(itertools.product(*own.values()), spec.seeds):
+        hp = dict(zip(own, values, strict=True))
+        config = config_type(
+            env_id=env,
+            mode=spec.mode,
+            vanilla=vanilla,
+            cost=cost,
+            total_timesteps=spec.total_timesteps,
+            eval_every=spec.eval_every,
+            eval_episodes=spec.eval_episodes,
+            **{**defaults, **{field_of[k]: tuple(v) if isinstance(v, list) else v for k, v in hp.items()}},
+        )
+        yield RunConfig(config_id(env, agent, vanilla, cost, seed, hp), agent, seed, hp, config)
 
 
 def group_runs(runs: Sequence[RunConfig]) -> list[list[RunConfig]]:

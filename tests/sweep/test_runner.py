@@ -71,6 +71,23 @@ def test_grid_groups_and_ids():
         expand(SweepSpec(**{**TINY.__dict__, "hyperparams": {"hidden": [32, 16]}}))
 
 
+def test_vanilla_runs_take_no_measurement_options():
+    """A vanilla run is not multiplied by the wrapper's options (it has none); costed runs are."""
+    from amjax.analysis.results import _planned_configs
+
+    spec = SweepSpec(agents=("dqn",), costs=(0.1,), seeds=(0, 1), vanilla=True, total_timesteps=2000, eval_every=1000,
+                     hyperparams={"instruments": "default", "instrument_costs": [(0.05, 0.3), (0.3, 0.05)],
+                                  "learning_rate": [1e-3, 3e-4]})
+    runs = expand(spec)
+    vanilla = [r for r in runs if r.vanilla]
+    assert len(runs) == 2 * 2 * 2 + 2 * 2  # costed: prices x rates x seeds; vanilla: rates x seeds
+    assert all(r.config.instruments == () and r.config.instrument_costs == () for r in vanilla)
+    assert {tuple(r.hyperparams) for r in vanilla} == {("learning_rate",)}
+    assert _planned_configs(spec.to_json()) == len(runs)
+    one = SweepSpec(**{**spec.__dict__, "hyperparams": {"instruments": ((0, 1), (2, 3))}})
+    assert _planned_configs(one.to_json()) == len(expand(one)) == 4
+
+
 def test_agent_scoped_hyperparameters():
     spec = SweepSpec(agents=("ppo", "dqn"), costs=(0.1,), seeds=(0,), total_timesteps=4096, eval_every=1024,
                      hyperparams={"gamma": 0.95, "ppo.gamma": [0.9, 0.99], "dqn.learning_rate": 3e-4})
