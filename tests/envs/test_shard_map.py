@@ -14,7 +14,7 @@ from jax.sharding import Mesh, PartitionSpec
 
 import amjax
 
-ENV_IDS = ("CartPole-v0", "Acrobot-v1", "LunarLander-v3", "MemoryProbe-v0")
+ENV_IDS = ("CartPole-v0", "Acrobot-v1", "LunarLander-v3", "MemoryProbe-v0", "CSTR-v0")
 # Steps per env, unrolled (each one compiled again). LunarLander's step holds every solver loop and its compile is
 # most of this file's time; two steps still feed a step's own output state back into it.
 STEPS = {"LunarLander-v3": 2}
