@@ -77,6 +77,7 @@ SWEEP_CASES = [
     (["--set", "instruments=cart"], "instruments: got 'cart'"),
     (["--set", "instruments=default", "--set", "instrument_costs=(0.1,)"], "instrument_costs: got 1 values"),
     (["--set", "instrument_costs=(0.1,0.2)"], "set instruments first"),
+    (["--set", "measure_head=split"], "measure_head: got 'split'"),
     (["--set", "reward_timing=later"], "reward_timing: got 'later'"),
     (["--set", "=3"], "--set: expected NAME=VALUE"),
     (["--set", "gamma"], "--set: expected NAME=VALUE"),

@@ -20,6 +20,7 @@ from amjax.validation import check_bool, check_choice, check_positive_int, check
 from amjax.wrappers.active_measure import MODES, REWARD_TIMINGS, check_extra_obs
 from amjax.wrappers.instruments import check_instruments, resolve_instruments
 
+MEASURE_HEADS = ("joint", "factored")
 _BOUNDS = {
     "positive": {"low": 0.0, "low_inclusive": False},
     "nonnegative": {"low": 0.0},
@@ -62,6 +63,8 @@ class AgentConfig:
     reward_timing: str = static("immediate")  # or "on_measure": raw rewards paid at the next measurement
     # () (the paper's single switch), "default" (the env's split) or a tuple of observation-index tuples
     instruments: Any = static(())
+    # "joint" (the paper's one output per (control, measure) pair) or "factored" (a control head and a measure head)
+    measure_head: str = static("joint")
     cost: float = 0.0  # traced: charged per measurement (with instruments: per step with any reading)
     noise_std: float = 0.0  # traced: std of the observation noise in mode "noisy"
     budget: float = 0.0  # traced: paid measurements allowed per episode (with budgeted=True)
@@ -138,6 +141,12 @@ class AgentConfig:
             raise ValueError("vanilla: a vanilla run never hides a state; it takes no extra_obs, budgeted, "
                              "reward_timing or instruments")
         num_instruments = self.check_instruments(env, env_params)
+        check_choice("measure_head", self.measure_head, MEASURE_HEADS)
+        if self.measure_head == "factored" and (self.vanilla or space != "Discrete"):
+            raise ValueError("measure_head: 'factored' splits a Discrete control's (control, measure) pairs; "
+                             + ("a vanilla run has no measure choice" if self.vanilla else
+                                f"{self.env_id}'s {space} control already has a measure entry of its own")
+                             + "; allowed there: 'joint'")
         bounds = {"cost": "nonnegative", "noise_std": "nonnegative", "budget": "nonnegative", **self.TRACED_BOUNDS}
         if num_instruments:
             bounds.update(instrument_costs="nonnegative", instrument_noise="nonnegative")
@@ -196,6 +205,11 @@ class AgentConfig:
     def steps_per_update(self) -> int:
         """Env steps (all parallel envs) consumed by one call of the algorithm's `update`."""
         raise NotImplementedError
+
+    @property
+    def factored_masks(self) -> int:
+        """Measure choices of a factored head (2^instruments), or 0 for the joint head."""
+        return 2**self.num_instruments if self.measure_head == "factored" else 0
 
     @property
     def num_instruments(self) -> int:

@@ -65,7 +65,8 @@ class DQNState:
 
 
 def network(config: DQNConfig, action_space: Any) -> DuelingQNetwork:
-    return DuelingQNetwork(action_space.n, tuple(config.hidden), config.activation, config.dueling)
+    return DuelingQNetwork(action_space.n, tuple(config.hidden), config.activation, config.dueling,
+                           config.factored_masks)
 
 
 def _example_item(envs: EnvBatch) -> dict[str, jax.Array]:

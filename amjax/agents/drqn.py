@@ -109,7 +109,8 @@ class DRQNState:
 
 def network(config: DRQNConfig, action_space: Any) -> RecurrentQNetwork:
     return RecurrentQNetwork(
-        action_space.n, tuple(config.hidden), config.rnn_size, config.cell, config.activation, config.dueling
+        action_space.n, tuple(config.hidden), config.rnn_size, config.cell, config.activation, config.dueling,
+        config.factored_masks,
     )
 
 

@@ -79,6 +79,11 @@ def policy_head(module: nn.Module, x: jax.Array, distribution: Distribution, den
     "mean" and "measure_logit", parameter "log_std", initialised to 0). Small initial weights start every policy
     near uniform (measuring with probability 1/2)."""
     if isinstance(distribution, Categorical):
+        if distribution.factored:  # a control categorical times a measure categorical, as joint logits
+            masks = 2**distribution.readings
+            control = dense(distribution.num_actions // masks, kernel_init=scaled_init(0.01), name="control_logits")(x)
+            measure = dense(masks, kernel_init=scaled_init(0.01), name="measure_logits")(x)
+            return _joint(control, measure)
         return dense(distribution.num_actions, kernel_init=scaled_init(0.01), name="logits")(x)
     mean = dense(distribution.controls, kernel_init=scaled_init(0.01), name="mean")(x)
     log_std = module.param("log_std", nn.initializers.zeros_init(), (distribution.controls,), jnp.float32)
@@ -113,16 +118,39 @@ class DuelingQNetwork(nn.Module):
     hidden: Sequence[int] = (64, 64)
     activation: str = "relu"
     dueling: bool = True
+    factored_masks: int = 0  # > 0: a factored head over (control, measure mask), this many masks
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
         x = MLP(self.hidden, self.activation)(obs)
-        return dueling_head(x, self.num_actions, self.dueling, head=NarrowDense)
+        return dueling_head(x, self.num_actions, self.dueling, head=NarrowDense, factored_masks=self.factored_masks)
 
 
-def dueling_head(x: jax.Array, num_actions: int, dueling: bool, head: type[nn.Module] = nn.Dense) -> jax.Array:
+def _joint(control: jax.Array, measure: jax.Array) -> jax.Array:
+    """[..., masks * controls] outputs `control[c] + measure[m]` at index `c + controls * m` (the env's action)."""
+    joint = measure[..., :, None] + control[..., None, :]
+    return joint.reshape(*joint.shape[:-2], -1)
+
+
+def dueling_head(
+    x: jax.Array, num_actions: int, dueling: bool, head: type[nn.Module] = nn.Dense, factored_masks: int = 0
+) -> jax.Array:
     """Q-values from features: a dueling value/advantage split, or a plain linear head (`head`: the layer class of
-    the per-action outputs, `nn.Dense` or the same parameters as `NarrowDense`)."""
+    the per-action outputs, `nn.Dense` or the same parameters as `NarrowDense`).
+
+    With `factored_masks` = M > 0 the head is factored over the active-measure pair: Q(s, c, m) = V(s) + A_c(s, c) +
+    A_m(s, m) (each advantage centred when dueling; without it Q_c(s, c) + Q_m(s, m)), an additive action-branching
+    decomposition (Tavakoli et al. 2018): the joint argmax is the control's and the measure's argmax taken apart,
+    and the rest of the algorithm sees the joint Q-values unchanged."""
+    if factored_masks:
+        controls = num_actions // factored_masks
+        control = head(controls, kernel_init=scaled_init(1.0), name="control_advantage")(x)
+        measure = head(factored_masks, kernel_init=scaled_init(1.0), name="measure_advantage")(x)
+        if not dueling:
+            return _joint(control, measure)
+        value = nn.Dense(1, kernel_init=scaled_init(1.0), name="state_value")(x)
+        centred = _joint(control - control.mean(-1, keepdims=True), measure - measure.mean(-1, keepdims=True))
+        return value + centred
     if not dueling:
         return head(num_actions, kernel_init=scaled_init(1.0), name="q")(x)
     value = nn.Dense(1, kernel_init=scaled_init(1.0), name="state_value")(x)
@@ -214,10 +242,11 @@ class DuelingHead(nn.Module):
 
     num_actions: int
     dueling: bool = True
+    factored_masks: int = 0
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        return dueling_head(x, self.num_actions, self.dueling)
+        return dueling_head(x, self.num_actions, self.dueling, factored_masks=self.factored_masks)
 
 
 class ActorCriticHeads(nn.Module):
@@ -242,10 +271,11 @@ class RecurrentQNetwork(nn.Module):
     cell: str = "gru"
     activation: str = "relu"
     dueling: bool = True
+    factored_masks: int = 0
 
     def setup(self) -> None:
         self.core = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)
-        self.head = DuelingHead(self.num_actions, self.dueling)
+        self.head = DuelingHead(self.num_actions, self.dueling, self.factored_masks)
 
     def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, jax.Array]:
         carry, x = self.core(carry, obs, first)

@@ -44,6 +44,7 @@ class Categorical:
     num_actions: int
     measure: bool = False
     readings: int = 1
+    factored: bool = False  # the head outputs control and measure logits apart (networks.policy_head)
 
     def sample(self, key: jax.Array, logits: jax.Array) -> jax.Array:
         return jax.random.categorical(key, logits)
@@ -154,16 +155,17 @@ class HybridGaussian:
 Distribution = Categorical | HybridGaussian
 
 
-def for_action_space(space: Any, measure: bool, readings: int = 1) -> Distribution:
+def for_action_space(space: Any, measure: bool, readings: int = 1, factored: bool = False) -> Distribution:
     """The distribution for an env's action space: `Categorical` for Discrete, `HybridGaussian` for a 1-D Box
     (`measure`: the Box's first entry is the active-measure wrapper's measuring choice, i.e. not a vanilla run;
-    `readings`: the number of instruments, each a measure choice)."""
+    `readings`: the number of instruments, each a measure choice; `factored`: a Discrete space's pairs from a
+    control head and a measure head, whose joint logits are their sums, i.e. a product of two categoricals)."""
     masks = 2**readings
     if isinstance(space, spaces.Discrete):
         if measure and int(space.n) % masks:
             raise ValueError(f"action space: an active-measure Discrete space with {readings} instrument(s) has "
                              f"{masks} x controls actions, got {space}")
-        return Categorical(int(space.n), bool(measure), readings)
+        return Categorical(int(space.n), bool(measure), readings, bool(factored))
     entries = readings * int(measure)
     if isinstance(space, spaces.Box) and len(space.shape) == 1 and space.shape[0] > entries:
         return HybridGaussian(space.shape[0] - entries, bool(measure), readings)

@@ -59,7 +59,8 @@ class PPOState:
 
 
 def network(config: PPOConfig, action_space: Any) -> ActorCritic:
-    distribution = for_action_space(action_space, measure=not config.vanilla, readings=config.num_instruments)
+    distribution = for_action_space(action_space, measure=not config.vanilla, readings=config.num_instruments,
+                                    factored=config.factored_masks > 0)
     return ActorCritic(distribution, tuple(config.hidden), config.activation, config.shared_network)
 
 

@@ -163,9 +163,12 @@ def test_seeds_determinism_and_vmap_equals_alone(name):
 @pytest.mark.parametrize("name", ["dqn", "ppo-box"])
 def test_instrument_prices_vmap_equals_alone(name):
     """Instruments' prices are traced: a batch of prices is one program, config i in it equals config i alone
-    (CartPole's cart and pole; Pendulum's angle and rate, two Bernoulli measure entries)."""
-    instruments = ((0, 1), (2,)) if name == "ppo-box" else "default"
-    base = TINY[name].replace(instruments=instruments)
+    (CartPole's cart and pole under Dueling DQN's factored head; Pendulum's angle and rate, two Bernoulli measure
+    entries)."""
+    if name == "ppo-box":
+        base = TINY[name].replace(instruments=((0, 1), (2,)))
+    else:
+        base = TINY[name].replace(instruments="default", measure_head="factored")
     configs = [base.replace(cost=c, instrument_costs=p) for c, p in [(0.0, (0.05, 0.3)), (0.1, (0.3, 0.0))]]
     keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)])
     stacked = stack_configs([c.validate() for c in configs])
