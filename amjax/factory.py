@@ -31,6 +31,7 @@ def make(
     instruments: Any = (),
     instrument_costs: Any = None,
     instrument_noise: Any = None,
+    cost_range: Any = None,
 ) -> tuple[Environment, Any]:
     """Build `env_id` wrapped as an active-measure MDP; returns `(env, params)`.
 
@@ -59,13 +60,16 @@ def make(
       instrument_costs: the price of reading each instrument (k numbers >= 0, traced; default zeros); `cost` is
         then charged once per step on which any instrument is read.
       instrument_noise: the std of each instrument's Gaussian reading noise (k numbers >= 0, traced; default 0).
+      cost_range: (low, high): each episode draws its cost uniformly from [low, high] (traced; `cost` must then be
+        0) and the cost is appended, last, to the observation, for one agent conditioned on every cost of the range;
+        (c, c) evaluates such an agent at cost c. None: the fixed `cost`.
     """
     check_bool("vanilla", vanilla)
     check_bool("flag", flag)
     if vanilla:
         if (noise_std is not None or mode != "last" or check_real("cost", cost).any() or extra_obs
                 or budget is not None or reward_timing != "immediate" or instruments != ()
-                or instrument_costs is not None or instrument_noise is not None):
+                or instrument_costs is not None or instrument_noise is not None or cost_range is not None):
             raise ValueError("vanilla=True takes no cost, mode, noise_std, extra_obs, budget, reward_timing or "
                              "instruments: it never hides a state")
         return wrap(env_id, vanilla=True)
@@ -81,8 +85,11 @@ def make(
         raise ValueError(f"noise_std is only used with mode='noisy' (mode is {mode!r})")
     else:
         noise_std = 0.0
+    if cost_range is not None:
+        cost_range = check_cost_range(cost_range, cost)
     wrapped, env_params = wrap(env_id, mode, flag, extra_obs=extra_obs, budgeted=budget is not None,
-                               reward_timing=reward_timing, instruments=instruments)
+                               reward_timing=reward_timing, instruments=instruments,
+                               cost_conditioned=cost_range is not None)
     k = len(wrapped.instruments)
     prices = {"instrument_costs": instrument_costs, "instrument_noise": instrument_noise}
     for name, value in prices.items():
@@ -96,7 +103,20 @@ def make(
             raise ValueError(f"{name}: got shape {value.shape}; allowed: one number per instrument, {k} of them "
                              "(a last axis of that length; leading axes to vmap over)")
         prices[name] = value
-    return wrapped, measure_params(env_params, cost, noise_std, budget, **prices)
+    return wrapped, measure_params(env_params, cost, noise_std, budget, **prices, cost_range=cost_range)
+
+
+def check_cost_range(cost_range: Any, cost: Any) -> tuple[Any, Any]:
+    """(low, high) with 0 <= low <= high, finite (arrays allowed, for vmap), and no fixed `cost` beside it."""
+    if not isinstance(cost_range, tuple | list) or len(cost_range) != 2:
+        raise ValueError(f"cost_range: got {cost_range!r}; allowed values: a pair (low, high) of finite numbers "
+                         "with 0 <= low <= high")
+    low, high = (check_real("cost_range", value, low=0.0) for value in cost_range)
+    if (low > high).any():
+        raise ValueError(f"cost_range: got {cost_range!r}; allowed values: low <= high")
+    if check_real("cost", cost, low=0.0).any():
+        raise ValueError("cost: a cost-conditioned env draws each episode's cost from cost_range; allowed: 0")
+    return low, high
 
 
 def wrap(
@@ -108,6 +128,7 @@ def wrap(
     budgeted: bool = False,
     reward_timing: str = "immediate",
     instruments: Any = (),
+    cost_conditioned: bool = False,
 ) -> tuple[Environment, Any]:
     """The wrapped environment and the *inner* env's params, unchecked (`make` checks its arguments first).
 
@@ -117,16 +138,17 @@ def wrap(
     if vanilla:
         return AlwaysMeasured(env, env_params), env_params
     wrapped = ActiveMeasure(env, mode, flag, env_params, extra_obs, budgeted, reward_timing,
-                            resolve_instruments(env_id, instruments))
+                            resolve_instruments(env_id, instruments), cost_conditioned)
     return wrapped, env_params
 
 
 def measure_params(
     env_params: Any, cost: Any, noise_std: Any, budget: Any = None, instrument_costs: Any = None,
-    instrument_noise: Any = None,
+    instrument_noise: Any = None, cost_range: Any = None,
 ) -> MeasureParams:
     """`MeasureParams` around the inner env's params; `cost`, `noise_std`, `budget` (None: no budget) and the
-    instruments' prices and noise ([k]; None: no instruments) may be traced (float32 arrays)."""
+    instruments' prices and noise ([k]; None: no instruments) and the cost range ((low, high); None: a fixed cost)
+    may be traced (float32 arrays)."""
 
     def optional(value: Any) -> Any:
         return None if value is None else jnp.asarray(value, jnp.float32)
@@ -138,4 +160,6 @@ def measure_params(
         budget=optional(budget),
         instrument_costs=optional(instrument_costs),
         instrument_noise=optional(instrument_noise),
+        cost_low=None if cost_range is None else optional(cost_range[0]),
+        cost_high=None if cost_range is None else optional(cost_range[1]),
     )

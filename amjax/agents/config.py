@@ -65,11 +65,15 @@ class AgentConfig:
     instruments: Any = static(())
     # "joint" (the paper's one output per (control, measure) pair) or "factored" (a control head and a measure head)
     measure_head: str = static("joint")
+    # one agent for a range of costs: each episode's cost drawn from [cost_low, cost_high] and observed
+    cost_conditioned: bool = static(False)
     cost: float = 0.0  # traced: charged per measurement (with instruments: per step with any reading)
     noise_std: float = 0.0  # traced: std of the observation noise in mode "noisy"
     budget: float = 0.0  # traced: paid measurements allowed per episode (with budgeted=True)
     instrument_costs: tuple[float, ...] = ()  # traced: the price of each instrument (() = zeros)
     instrument_noise: tuple[float, ...] = ()  # traced: the std of each instrument's reading noise (() = zeros)
+    cost_low: float = 0.0  # traced: with cost_conditioned, the range episodes draw their cost from
+    cost_high: float = 0.0
 
     # The allowed range of each traced field of a subclass: "positive" (> 0), "nonnegative" (>= 0) or "unit"
     # ([0, 1]); every value must be finite.
@@ -142,12 +146,16 @@ class AgentConfig:
                              "reward_timing or instruments")
         num_instruments = self.check_instruments(env, env_params)
         check_choice("measure_head", self.measure_head, MEASURE_HEADS)
+        check_bool("cost_conditioned", self.cost_conditioned)
+        if self.cost_conditioned and self.vanilla:
+            raise ValueError("cost_conditioned: a vanilla run has no measurement cost; allowed there: False")
         if self.measure_head == "factored" and (self.vanilla or space != "Discrete"):
             raise ValueError("measure_head: 'factored' splits a Discrete control's (control, measure) pairs; "
                              + ("a vanilla run has no measure choice" if self.vanilla else
                                 f"{self.env_id}'s {space} control already has a measure entry of its own")
                              + "; allowed there: 'joint'")
-        bounds = {"cost": "nonnegative", "noise_std": "nonnegative", "budget": "nonnegative", **self.TRACED_BOUNDS}
+        bounds = {"cost": "nonnegative", "noise_std": "nonnegative", "budget": "nonnegative",
+                  "cost_low": "nonnegative", "cost_high": "nonnegative", **self.TRACED_BOUNDS}
         if num_instruments:
             bounds.update(instrument_costs="nonnegative", instrument_noise="nonnegative")
         for name, kind in bounds.items():
@@ -159,6 +167,7 @@ class AgentConfig:
             check_real(name, value, **_BOUNDS[kind])
         if self.vanilla and not isinstance(self.cost, jax.core.Tracer) and np.any(np.asarray(self.cost)):
             raise ValueError("cost: a vanilla run has no measurement cost; allowed values: 0")
+        self.check_cost_range()
         if not self.budgeted and not isinstance(self.budget, jax.core.Tracer) and np.any(np.asarray(self.budget)):
             raise ValueError("budget: set budgeted=True to enforce a measurement budget (budget is ignored without)")
         check_positive_int("total_timesteps", self.total_timesteps, maximum=MAX_STEPS)
@@ -181,6 +190,22 @@ class AgentConfig:
                 f"total_timesteps={total} (the command line rounds them for you)"
             )
         return self
+
+    def check_cost_range(self) -> None:
+        """With cost_conditioned: cost_low <= cost_high and no fixed cost; without: the range left at zero."""
+        values = (self.cost, self.cost_low, self.cost_high)
+        if any(isinstance(v, jax.core.Tracer) for v in values):
+            return
+        cost, low, high = (np.asarray(v) for v in values)
+        if self.cost_conditioned:
+            if np.any(low > high):
+                raise ValueError(f"cost_low: got {low}, above cost_high {high}; allowed: cost_low <= cost_high")
+            if np.any(cost):
+                raise ValueError("cost: a cost-conditioned run draws each episode's cost from [cost_low, cost_high]; "
+                                 "allowed values: 0 (e.g. --cost 0 --set cost_conditioned=True --set cost_high=0.5)")
+        elif np.any(low) or np.any(high):
+            raise ValueError("cost_low, cost_high: set cost_conditioned=True to draw costs from a range (they are "
+                             "ignored without)")
 
     def check_instruments(self, env: Any, env_params: Any) -> int:
         """Check `instruments` and the lengths of their prices and noise; returns the number of instruments."""

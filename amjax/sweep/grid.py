@@ -23,7 +23,7 @@ SCHEDULE_FIELDS = ("total_timesteps", "eval_every", "eval_episodes")
 GRID_FIELDS = ("env_id", "cost", "vanilla")
 # Fields of the active-measure wrapper: a vanilla run (the plain env) takes none, so it is not multiplied by them.
 MEASURE_FIELDS = ("noise_std", "extra_obs", "budgeted", "budget", "reward_timing", "instruments", "instrument_costs",
-                  "instrument_noise")
+                  "instrument_noise", "measure_head", "cost_conditioned", "cost_low", "cost_high")
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,9 @@ Options beyond the paper (each off by default; off, the state, observation and r
   to the observation's bounds); `cost` is then charged once per step on which any instrument is read (the cost of
   taking a sample at all), and "since_measured" counts per instrument. `info["readings"]` holds the k choices
   carried out; `info["measured"]` is whether any was. The budget counts readings.
+- `cost_conditioned`: each episode draws its cost uniformly from [`MeasureParams.cost_low`, `cost_high`] (traced;
+  redrawn at every reset and auto-reset, charged in place of `cost`) and the cost is appended, last, to the
+  observation, so one agent can learn every cost of the range at once; setting low = high evaluates it at one cost.
 Keys: in mode "last" `step` hands its key to the inner environment unchanged (always measuring is then exactly
 the plain environment under the same keys); the other modes split it into the inner env's key and the view's.
 
@@ -70,6 +73,8 @@ class MeasureParams:
     budget: Any = None  # paid measurements allowed per episode (a wrapper with budgeted=True only)
     instrument_costs: Any = None  # [k] price of reading each instrument (a wrapper with instruments only)
     instrument_noise: Any = None  # [k] std of each instrument's reading noise (a wrapper with instruments only)
+    cost_low: Any = None  # an episode's cost is drawn from [cost_low, cost_high] (cost_conditioned only)
+    cost_high: Any = None
 
 
 @struct.dataclass
@@ -83,6 +88,7 @@ class MeasureState:
     last_control: Any = None  # the last control action, one-hot for Discrete ("last_action")
     measurements: Any = None  # paid measurements this episode (budgeted)
     withheld: Any = None  # raw reward not yet paid (reward_timing="on_measure")
+    episode_cost: Any = None  # this episode's cost per measurement (cost_conditioned)
 
 
 def decode_discrete(action: jax.Array, num_controls: int) -> tuple[jax.Array, jax.Array]:
@@ -122,11 +128,13 @@ class ActiveMeasure(GymnaxWrapper):
         budgeted: bool = False,
         reward_timing: str = "immediate",
         instruments: tuple[tuple[int, ...], ...] = (),
+        cost_conditioned: bool = False,
     ):
         super().__init__(env)
         check_choice("mode", mode, MODES)
         check_bool("flag", flag)
         check_bool("budgeted", budgeted)
+        check_bool("cost_conditioned", cost_conditioned)
         check_choice("reward_timing", reward_timing, REWARD_TIMINGS)
         extra_obs = check_extra_obs(extra_obs)
         self.mode = mode
@@ -134,6 +142,7 @@ class ActiveMeasure(GymnaxWrapper):
         self.extra_obs = extra_obs
         self.budgeted = budgeted
         self.reward_timing = reward_timing
+        self.cost_conditioned = cost_conditioned
         # The inner params behind `default_params` (and so behind reset/step with params=None): the registry's
         # for an id, e.g. CartPole-v0's 200-step limit, not the inner env class's own defaults.
         env_params = env.default_params if env_params is None else env_params
@@ -154,9 +163,10 @@ class ActiveMeasure(GymnaxWrapper):
                 f"env: the active-measure wrapper needs a Box observation space, got "
                 f"{type(obs_space).__name__}; allowed: Box"
             )
-        if (flag or extra_obs or budgeted or instruments) and len(obs_space.shape) != 1:
+        if (flag or extra_obs or budgeted or instruments or cost_conditioned) and len(obs_space.shape) != 1:
             raise TypeError(
-                f"flag=True (and extra_obs, budgeted, instruments) need a 1-D observation, but its shape is "
+                f"flag=True (and extra_obs, budgeted, instruments, cost_conditioned) need a 1-D observation, but its "
+                f"shape is "
                 f"{obs_space.shape}; use flag=False or flatten the observation"
             )
         self.instruments = check_instruments(instruments, obs_space.shape[0] if instruments else 0)
@@ -170,7 +180,7 @@ class ActiveMeasure(GymnaxWrapper):
     @property
     def _appends(self) -> bool:
         """Whether anything is appended after the flag."""
-        return bool(self.extra_obs) or self.budgeted
+        return bool(self.extra_obs) or self.budgeted or self.cost_conditioned
 
     # -- spaces -------------------------------------------------------------------------------
 
@@ -232,6 +242,9 @@ class ActiveMeasure(GymnaxWrapper):
         if self.budgeted:
             low.append(jnp.zeros(1))
             high.append(jnp.ones(1))
+        if self.cost_conditioned:
+            low.append(jnp.reshape(params.cost_low, (1,)))
+            high.append(jnp.reshape(params.cost_high, (1,)))
         return jnp.concatenate(low), jnp.concatenate(high)
 
     @property
@@ -243,6 +256,8 @@ class ActiveMeasure(GymnaxWrapper):
             budget=jnp.float32(jnp.inf) if self.budgeted else None,
             instrument_costs=jnp.zeros(len(self.instruments)) if self.instruments else None,
             instrument_noise=jnp.zeros(len(self.instruments)) if self.instruments else None,
+            cost_low=jnp.float32(0.0) if self.cost_conditioned else None,
+            cost_high=jnp.float32(0.0) if self.cost_conditioned else None,
         )
 
     @property
@@ -288,8 +303,9 @@ class ActiveMeasure(GymnaxWrapper):
         noise = params.noise_std * jax.random.normal(key, true_obs.shape)
         return jnp.clip(true_obs + noise, low, high)
 
-    def _initial_counters(self) -> dict[str, Any]:
-        """The options' counters at an episode's start (None for options that are off)."""
+    def _initial_counters(self, key: Any = None, params: MeasureParams | None = None) -> dict[str, Any]:
+        """The options' counters at an episode's start (None for options that are off); with cost_conditioned,
+        the episode's cost drawn from `key` (None: zero, for `_counters_after` to overwrite)."""
         zero = jnp.int32(0)
         if "last_action" not in self.extra_obs:
             last_control = None
@@ -303,7 +319,16 @@ class ActiveMeasure(GymnaxWrapper):
             "last_control": last_control,
             "measurements": zero if self.budgeted else None,
             "withheld": jnp.float32(0.0) if self.reward_timing == "on_measure" else None,
+            "episode_cost": self._draw_cost(key, params) if self.cost_conditioned else None,
         }
+
+    @staticmethod
+    def _draw_cost(key: Any, params: MeasureParams | None) -> jax.Array:
+        """An episode's cost, uniform in [cost_low, cost_high], from a stream apart from the inner env's."""
+        if key is None:
+            return jnp.float32(0.0)
+        u = jax.random.uniform(jax.random.fold_in(key, 2), (), jnp.float32)
+        return params.cost_low + u * (params.cost_high - params.cost_low)
 
     def _observe(self, obs: jax.Array, fresh: jax.Array, counters: dict[str, Any], params: MeasureParams) -> jax.Array:
         """The agent's observation: `obs`, the flag, then the features the options append."""
@@ -322,6 +347,8 @@ class ActiveMeasure(GymnaxWrapper):
             used = counters["measurements"].astype(jnp.float32)
             left = jnp.where(params.budget > 0, 1.0 - used / params.budget, 0.0)
             features.append(jnp.clip(left, 0.0, 1.0)[None])
+        if self.cost_conditioned:
+            features.append(jnp.reshape(counters["episode_cost"], (1,)).astype(jnp.float32))
         return jnp.concatenate([obs, *features])
 
     @partial(jax.jit, static_argnames=("self",))
@@ -331,7 +358,7 @@ class ActiveMeasure(GymnaxWrapper):
         params = self.default_params if params is None else params
         obs, env_state = self._env.reset(key, params.env_params)
         obs = jnp.asarray(obs, jnp.float32)
-        counters = self._initial_counters()
+        counters = self._initial_counters(key, params)
         return self._observe(obs, True, counters, params), MeasureState(env_state, obs, **counters)
 
     @partial(jax.jit, static_argnames=("self",))
@@ -367,11 +394,11 @@ class ActiveMeasure(GymnaxWrapper):
             noise = params.instrument_noise[self._owner] * jax.random.normal(jax.random.fold_in(key, 1),
                                                                              true_obs.shape)
             reading = jnp.clip(true_obs + noise, low, high)
-            cost = params.cost * any_read + (params.instrument_costs * measured).sum()
+            cost = self._base_cost(state, params) * any_read + (params.instrument_costs * measured).sum()
         else:
             any_read = fresh = measured
             reading = true_obs
-            cost = params.cost * measured
+            cost = self._base_cost(state, params) * measured
         seen = jnp.where(fresh, reading, unmeasured)
         remembered = jnp.where(fresh, reading, state.last_obs)
         # On an episode boundary the auto-reset's first observation is a free measurement.
@@ -384,7 +411,7 @@ class ActiveMeasure(GymnaxWrapper):
             paid = jnp.where(any_read | done, owed, 0.0)
             counters["withheld"] = owed - paid
         shown = self._observe(seen, measured, counters, params)  # the pre-reset observation
-        fresh_counters = self._initial_counters()
+        fresh_counters = self._initial_counters(key, params)  # the next episode's
         next_counters = jax.tree.map(lambda start, now: jnp.where(done, start, now), fresh_counters, counters)
         if self._appends or self.instruments:
             next_obs = jnp.where(done, self._observe(reset_obs, True, fresh_counters, params), shown)
@@ -400,10 +427,15 @@ class ActiveMeasure(GymnaxWrapper):
             info["refused"] = requested & ~measured
         return next_obs, next_state, paid - cost, terminated, truncated, info
 
+    def _base_cost(self, state: MeasureState, params: MeasureParams) -> jax.Array:
+        """The cost per measurement: this episode's draw with cost_conditioned, else `params.cost`."""
+        return state.episode_cost if self.cost_conditioned else params.cost
+
     def _counters_after(self, state: MeasureState, control: jax.Array, measured: jax.Array) -> dict[str, Any]:
         """The options' counters after this step (before an auto-reset restarts them); `step` sets the reward
         owed (`withheld`)."""
         counters = self._initial_counters()
+        counters["episode_cost"] = state.episode_cost
         if counters["since_measured"] is not None:
             counters["since_measured"] = jnp.where(measured, 0, state.since_measured + 1)
         if counters["last_control"] is not None:
