@@ -114,6 +114,21 @@ def test_replicate_flag_corpus(tmp_path, capsys, flags, message):
     assert not (tmp_path / "never").exists()
 
 
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--seeds", "0"], "--seeds: got 0"),
+    (["--cost-high", "0"], "--cost-high: got 0"),
+    (["--grid-step", "0"], "--grid-step: got 0"),
+    (["--grid-step", "0.9"], "--grid-step: got 0.9"),
+    (["--specialist-costs", "-0.1"], "--specialist-costs: got -0.1"),
+    (["--steps", "0"], "--steps: got 0"),
+    (["--agent", "sarsa"], "sarsa"),
+])
+def test_pareto_flag_corpus(tmp_path, capsys, flags, message):
+    code, err = _run(["pareto", "--out", str(tmp_path / "never"), *flags], capsys)
+    assert code == 2 and message in err and "Traceback" not in err, err
+    assert not (tmp_path / "never").exists()
+
+
 def test_out_that_is_not_a_folder(tmp_path, capsys):
     afile = tmp_path / "afile"
     afile.write_text("mine")

@@ -25,7 +25,7 @@ from amjax.envs.registry import make_env  # noqa: E402
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep  # noqa: E402
 from amjax.sweep.grid import MAX_CONFIGS, expand, round_schedule  # noqa: E402
 from amjax.sweep.storage import UnreadableFileError  # noqa: E402
-from train import replicate, report  # noqa: E402
+from train import pareto, replicate, report  # noqa: E402
 from train.flags import add_logging_arguments, make_loggers  # noqa: E402
 from train.presets import PRESETS, REPLICATE_HYPERPARAMS  # noqa: E402
 
@@ -120,6 +120,7 @@ def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
     commands.add_parser("presets", help="list the named sweeps")
     report.add_parser(commands)
     replicate.add_parser(commands)
+    pareto.add_parser(commands)
     return parser
 
 
@@ -207,6 +208,8 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m train") -> in
         return report.run(args)
     if args.command == "replicate":
         return replicate.run(args, parser.error)
+    if args.command == "pareto":
+        return pareto.run(args, parser.error)
     if args.command == "presets":
         for name, spec in PRESETS.items():
             runs = len(expand(spec))
