@@ -61,8 +61,9 @@ def make(
         then charged once per step on which any instrument is read.
       instrument_noise: the std of each instrument's Gaussian reading noise (k numbers >= 0, traced; default 0).
       cost_range: (low, high): each episode draws its cost uniformly from [low, high] (traced; `cost` must then be
-        0) and the cost is appended, last, to the observation, for one agent conditioned on every cost of the range;
-        (c, c) evaluates such an agent at cost c. None: the fixed `cost`.
+        0) and the cost, scaled from [low, high] to [-1, 1] (0 when low = high), is appended, last, to the
+        observation, for one agent conditioned on every cost of the range. To score such an agent at cost c, keep
+        the scaling range and draw c: `params.replace(cost_low=c, cost_high=c)`. None: the fixed `cost`.
     """
     check_bool("vanilla", vanilla)
     check_bool("flag", flag)
@@ -162,4 +163,6 @@ def measure_params(
         instrument_noise=optional(instrument_noise),
         cost_low=None if cost_range is None else optional(cost_range[0]),
         cost_high=None if cost_range is None else optional(cost_range[1]),
+        cost_scale_low=None if cost_range is None else optional(cost_range[0]),
+        cost_scale_high=None if cost_range is None else optional(cost_range[1]),
     )

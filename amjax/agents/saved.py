@@ -26,6 +26,7 @@ from amjax.agents.registry import agent_of, algorithm
 from amjax.agents.rollout import EnvBatch
 from amjax.agents.training import Policy, evaluate_greedy
 from amjax.files import atomic_write
+from amjax.validation import check_real
 
 FORMAT = "amjax-policy"
 VERSION = 1
@@ -57,9 +58,14 @@ class SavedPolicy:
 
     def evaluate(self, key: jax.Array, num_episodes: int = 10, **changes: Any) -> dict[str, float]:
         """Mean costed return, raw return, length and measurements over `num_episodes` greedy test episodes on
-        the config's env; `changes` edit the config first (e.g. `cost=0.3` to score it at another cost)."""
+        the config's env; `changes` edit the config first (e.g. `cost=0.3` to score it at another cost). A
+        cost-conditioned policy scored at `cost=c` plays episodes at cost c and sees c scaled by its training range
+        (`cost_low`, `cost_high`), as in training."""
+        draw = None
+        if self.config.cost_conditioned and "cost" in changes:
+            draw = float(check_real("cost", changes.pop("cost"), low=0.0))
         config = self.config.replace(**changes).validate() if changes else self.config
-        means = _evaluate(self.agent, config, self.params, key, int(num_episodes))
+        means = _evaluate(self.agent, config, self.params, key, int(num_episodes), draw)
         return {name: float(value) for name, value in dataclasses.asdict(means).items()}
 
     def actor(self, seed: int = 0) -> Actor:
@@ -69,9 +75,14 @@ class SavedPolicy:
 
 
 @partial(jax.jit, static_argnames=("agent", "num_episodes"))
-def _evaluate(agent: str, config: AgentConfig, params: Any, key: jax.Array, num_episodes: int):
+def _evaluate(agent: str, config: AgentConfig, params: Any, key: jax.Array, num_episodes: int, draw: Any = None):
+    """`draw`: a cost-conditioned policy's test cost (the draw range (c, c), the scaling range kept)."""
     algo = algorithm(agent)
-    return evaluate_greedy(algo, config, algo.setup(config), params, key, num_episodes)
+    setup = algo.setup(config)
+    if draw is not None:
+        setup = setup.replace(env_params=setup.env_params.replace(cost_low=jnp.float32(draw),
+                                                                   cost_high=jnp.float32(draw)))
+    return evaluate_greedy(algo, config, setup, params, key, num_episodes)
 
 
 class Actor:

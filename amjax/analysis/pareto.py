@@ -26,7 +26,7 @@ METRICS = ["return", "raw_return", "measured"]
 
 def cost_front(folder: str | Path, costs: Sequence[float], episodes: int = 100, key: int = FRONT_KEY) -> pd.DataFrame:
     """Every saved best policy of the cost-conditioned sweep in `folder`, evaluated at each cost on `episodes`
-    fresh greedy test episodes (`SavedPolicy.evaluate` with `cost_low = cost_high = cost`): columns agent, seed,
+    fresh greedy test episodes (`SavedPolicy.evaluate(..., cost=c)`): columns agent, seed,
     config_id, cost, return (costed), raw_return, measured (fraction of steps)."""
     summary = load_results(folder).summary
     rows = []
@@ -36,7 +36,7 @@ def cost_front(folder: str | Path, costs: Sequence[float], episodes: int = 100, 
             raise ValueError(f"folder: {run.config_id} in {folder} is not cost-conditioned; a front needs a sweep "
                              "with cost_conditioned=True")
         for cost in costs:
-            means = policy.evaluate(jax.random.key(key), episodes, cost_low=float(cost), cost_high=float(cost))
+            means = policy.evaluate(jax.random.key(key), episodes, cost=float(cost))
             rows.append({"agent": run.agent, "seed": run.seed, "config_id": run.config_id, "cost": float(cost),
                          "return": means["costed_return"], "raw_return": means["raw_return"],
                          "measured": means["measurements"] / means["length"]})

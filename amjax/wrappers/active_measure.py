@@ -28,7 +28,9 @@ Options beyond the paper (each off by default; off, the state, observation and r
   carried out; `info["measured"]` is whether any was. The budget counts readings.
 - `cost_conditioned`: each episode draws its cost uniformly from [`MeasureParams.cost_low`, `cost_high`] (traced;
   redrawn at every reset and auto-reset, charged in place of `cost`) and the cost is appended, last, to the
-  observation, so one agent can learn every cost of the range at once; setting low = high evaluates it at one cost.
+  observation, scaled from the training range [`cost_scale_low`, `cost_scale_high`] to [-1, 1] (0 for a single
+  cost), so one agent can learn every cost of the range at once. To score it at cost c, set the draw range to
+  (c, c) and keep the scaling range.
 Keys: in mode "last" `step` hands its key to the inner environment unchanged (always measuring is then exactly
 the plain environment under the same keys); the other modes split it into the inner env's key and the view's.
 
@@ -75,6 +77,10 @@ class MeasureParams:
     instrument_noise: Any = None  # [k] std of each instrument's reading noise (a wrapper with instruments only)
     cost_low: Any = None  # an episode's cost is drawn from [cost_low, cost_high] (cost_conditioned only)
     cost_high: Any = None
+    # The observed cost is scaled from [cost_scale_low, cost_scale_high] (the training range) to [-1, 1], 0 when the
+    # two are equal; evaluating at another cost changes the draw range and keeps this one (cost_conditioned only).
+    cost_scale_low: Any = None
+    cost_scale_high: Any = None
 
 
 @struct.dataclass
@@ -95,6 +101,14 @@ def decode_discrete(action: jax.Array, num_controls: int) -> tuple[jax.Array, ja
     """Split `control + num_controls * measure` into (control, measure). Out-of-range actions wrap."""
     action = jnp.asarray(action, jnp.int32)
     return action % num_controls, action >= num_controls
+
+
+def scaled_cost(cost: jax.Array, params: MeasureParams) -> jax.Array:
+    """The cost as the agent sees it: [cost_scale_low, cost_scale_high] mapped to [-1, 1] (0 for a single cost, so
+    a single-cost range adds an input that is always 0: the fixed-cost network, one dead input wider)."""
+    low, high = params.cost_scale_low, params.cost_scale_high
+    width = jnp.where(high > low, high - low, 1.0)
+    return jnp.where(high > low, 2.0 * (cost - low) / width - 1.0, 0.0).astype(jnp.float32)
 
 
 def sample_box(key: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
@@ -242,9 +256,9 @@ class ActiveMeasure(GymnaxWrapper):
         if self.budgeted:
             low.append(jnp.zeros(1))
             high.append(jnp.ones(1))
-        if self.cost_conditioned:
-            low.append(jnp.reshape(params.cost_low, (1,)))
-            high.append(jnp.reshape(params.cost_high, (1,)))
+        if self.cost_conditioned:  # [-1, 1], widened when the draw range leaves the scaling range
+            low.append(jnp.minimum(-1.0, scaled_cost(params.cost_low, params)).reshape(1))
+            high.append(jnp.maximum(1.0, scaled_cost(params.cost_high, params)).reshape(1))
         return jnp.concatenate(low), jnp.concatenate(high)
 
     @property
@@ -258,6 +272,8 @@ class ActiveMeasure(GymnaxWrapper):
             instrument_noise=jnp.zeros(len(self.instruments)) if self.instruments else None,
             cost_low=jnp.float32(0.0) if self.cost_conditioned else None,
             cost_high=jnp.float32(0.0) if self.cost_conditioned else None,
+            cost_scale_low=jnp.float32(0.0) if self.cost_conditioned else None,
+            cost_scale_high=jnp.float32(0.0) if self.cost_conditioned else None,
         )
 
     @property
@@ -348,7 +364,7 @@ class ActiveMeasure(GymnaxWrapper):
             left = jnp.where(params.budget > 0, 1.0 - used / params.budget, 0.0)
             features.append(jnp.clip(left, 0.0, 1.0)[None])
         if self.cost_conditioned:
-            features.append(jnp.reshape(counters["episode_cost"], (1,)).astype(jnp.float32))
+            features.append(jnp.reshape(scaled_cost(counters["episode_cost"], params), (1,)))
         return jnp.concatenate([obs, *features])
 
     @partial(jax.jit, static_argnames=("self",))

@@ -27,6 +27,8 @@ from amjax.agents import (
 from amjax.agents.ppo_core import PPOBaseConfig, gae
 from amjax.agents.q_learning import QLearningConfig, epsilon, n_step_transitions, td_targets
 from amjax.agents.replay import replay_add, replay_init, replay_sample
+from amjax.agents.rollout import EnvBatch
+from amjax.agents.saved import SavedPolicy
 
 TINY = {
     "ppo": PPOConfig(total_timesteps=4096, eval_every=2048, num_envs=4, num_steps=64, eval_episodes=2),
@@ -178,6 +180,40 @@ def test_instrument_prices_vmap_equals_alone(name):
         for field in ("eval_return", "train_return", "loss", "eval_measurements"):
             np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
     assert np.all(np.isfinite(rows.columns()["loss"]))
+
+
+@pytest.mark.parametrize("name", ["dqn", "ppo"])
+def test_cost_ranges_vmap_equals_alone(name):
+    """A cost-conditioned run's range is traced: a batch of ranges is one program, config i in it equals config i
+    alone."""
+    base = TINY[name].replace(cost_conditioned=True)
+    configs = [base.replace(cost_low=lo, cost_high=hi) for lo, hi in [(0.0, 0.5), (0.2, 0.2)]]
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)])
+    stacked = stack_configs([c.validate() for c in configs])
+    _, rows = _compiled(name)[1](stacked, keys)
+    for i in range(2):
+        _, alone = _run(name, unstack_config(stacked, i), keys[i])
+        for field in ("eval_return", "train_return", "loss", "eval_measurements"):
+            np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
+
+
+@pytest.mark.parametrize("name", ["dqn", "ppo"])
+def test_a_conditioned_policy_acts_on_the_cost(name):
+    """The greedy action of a cost-conditioned policy changes with the cost it sees (the scaled last entry of the
+    observation), and `SavedPolicy.evaluate(cost=c)` plays episodes at cost c."""
+    config = TINY[name].replace(cost_conditioned=True, cost_high=1.0).validate()
+    states, _ = _run(name, config, jax.random.PRNGKey(3))
+    saved = SavedPolicy(agent_of(config), config, states.best_params)
+    act, carry = saved.policy(num_envs=256)
+    obs = jax.random.uniform(jax.random.key(0), (256, 6), minval=-0.2, maxval=0.2).at[:, 4].set(0.0)  # stale
+    actions = [np.asarray(act(EnvBatch(obs.at[:, -1].set(seen), None, jnp.ones(256, bool)), carry,
+                              jax.random.key(1))[0]) for seen in (-1.0, 1.0)]
+    assert np.any(actions[0] != actions[1]), "the action ignores the cost input"
+    free, dear = (saved.evaluate(jax.random.key(2), 4, cost=c) for c in (0.0, 1.0))
+    assert free["costed_return"] == pytest.approx(free["raw_return"])
+    assert dear["costed_return"] == pytest.approx(dear["raw_return"] - dear["measurements"], rel=1e-5)
+    with pytest.raises(ValueError, match="cost: got -1"):
+        saved.evaluate(jax.random.key(2), 4, cost=-1.0)
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn"])
