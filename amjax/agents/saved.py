@@ -27,6 +27,7 @@ from amjax.agents.rollout import EnvBatch
 from amjax.agents.training import Policy, evaluate_greedy
 from amjax.files import atomic_write
 from amjax.validation import check_real
+from amjax.wrappers.active_measure import MeasureParams, scaled_cost
 
 FORMAT = "amjax-policy"
 VERSION = 1
@@ -68,10 +69,12 @@ class SavedPolicy:
         means = _evaluate(self.agent, config, self.params, key, int(num_episodes), draw)
         return {name: float(value) for name, value in dataclasses.asdict(means).items()}
 
-    def actor(self, seed: int = 0) -> Actor:
+    def actor(self, seed: int = 0, cost: float | None = None) -> Actor:
         """A stateful one-env actor for NumPy loops (e.g. a Gymnasium env from `amjax.wrappers.gymnasium`); `seed`
-        seeds the test policy's own draws (an actor-critic agent samples whether to measure)."""
-        return Actor(self, seed)
+        seeds the test policy's own draws (an actor-critic agent samples whether to measure). A cost-conditioned
+        policy needs the `cost` the env charges: the actor appends it, scaled by the training range, to each
+        observation (run it in an env at that fixed cost)."""
+        return Actor(self, seed, cost)
 
 
 @partial(jax.jit, static_argnames=("agent", "num_episodes"))
@@ -90,8 +93,19 @@ class Actor:
     Box one); `reset()` at each episode start (recurrent agents start from a zero hidden state, as in training).
     Each call draws a fresh key for the test policy from `seed`'s stream."""
 
-    def __init__(self, saved: SavedPolicy, seed: int = 0):
+    def __init__(self, saved: SavedPolicy, seed: int = 0, cost: float | None = None):
         act, self._initial = saved.policy(num_envs=1)
+        self._appended = np.zeros(0, np.float32)
+        if saved.config.cost_conditioned:
+            if cost is None:
+                raise ValueError("cost: a cost-conditioned policy acts at a cost; allowed values: a number >= 0 "
+                                 "(e.g. actor(cost=0.2), in an env that charges 0.2)")
+            low, high = float(saved.config.cost_low), float(saved.config.cost_high)
+            scale = MeasureParams(None, None, None, cost_scale_low=jnp.float32(low), cost_scale_high=jnp.float32(high))
+            self._appended = np.asarray(scaled_cost(jnp.float32(check_real("cost", cost, low=0.0)), scale)).reshape(1)
+        elif cost is not None:
+            raise ValueError(f"cost: got {cost!r} for a policy that is not cost-conditioned; allowed values: None "
+                             "(the env charges its own cost)")
 
         def step(obs, carry, first, key):
             key, act_key = jax.random.split(key)
@@ -106,9 +120,10 @@ class Actor:
         self._carry, self._first = self._initial, True
 
     def __call__(self, obs: Any) -> int | np.ndarray:
-        action, self._carry, self._key = self._step(
-            jnp.asarray(obs, jnp.float32), self._carry, jnp.bool_(self._first), self._key
-        )
+        obs = np.asarray(obs, np.float32)
+        if self._appended.size:  # a cost-conditioned policy's cost input
+            obs = np.concatenate([obs, self._appended])
+        action, self._carry, self._key = self._step(jnp.asarray(obs), self._carry, jnp.bool_(self._first), self._key)
         self._first = False
         return int(action) if action.ndim == 0 else np.asarray(action)
 

@@ -214,6 +214,14 @@ def test_a_conditioned_policy_acts_on_the_cost(name):
     assert dear["costed_return"] == pytest.approx(dear["raw_return"] - dear["measurements"], rel=1e-5)
     with pytest.raises(ValueError, match="cost: got -1"):
         saved.evaluate(jax.random.key(2), 4, cost=-1.0)
+    # A NumPy actor (for a Gymnasium env at a fixed cost) appends the scaled cost itself.
+    for seen, cost in ((-1.0, 0.0), (1.0, 1.0)):
+        got = [saved.actor(cost=cost)(np.asarray(o[:-1])) for o in obs.at[:, -1].set(seen)[:16]]
+        np.testing.assert_array_equal(got, actions[(seen > 0)][:16])
+    with pytest.raises(ValueError, match="cost: a cost-conditioned policy acts at a cost"):
+        saved.actor()
+    with pytest.raises(ValueError, match="not cost-conditioned"):
+        SavedPolicy(agent_of(TINY[name]), TINY[name], states.best_params).actor(cost=0.1)
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn"])
