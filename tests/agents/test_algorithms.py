@@ -142,17 +142,24 @@ def _run(name, config, key):
     return _compiled(name)[0](config, key)
 
 
+def _assert_batch_equals_alone(name, configs, keys):
+    """`configs` trained as one vmapped program: each equals its run alone (returns the batch's rows)."""
+    stacked = stack_configs([c.validate() for c in configs])
+    _, rows = _compiled(name)[1](stacked, keys)
+    for i in range(len(configs)):
+        _, alone = _run(name, unstack_config(stacked, i), keys[i])
+        for field in ("eval_return", "train_return", "loss", "eval_measurements"):
+            np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
+    return rows
+
+
 @pytest.mark.parametrize("name", ["ppo", "dqn", "ppo-box"])
 def test_seeds_determinism_and_vmap_equals_alone(name):
     base = TINY[name]
     configs = [base.replace(cost=c, learning_rate=lr) for c, lr in [(0.0, 1e-3), (0.2, 3e-4), (0.1, 5e-4)]]
     keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1, 2)])
+    _assert_batch_equals_alone(name, configs, keys)
     stacked = stack_configs(configs)
-    _, rows = _compiled(name)[1](stacked, keys)
-    for i in range(3):
-        _, alone = _run(name, unstack_config(stacked, i), keys[i])
-        for field in ("eval_return", "train_return", "loss", "eval_measurements"):
-            np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
     # Same seed -> bit-identical; different seed -> different.
     _, again = _run(name, unstack_config(stacked, 0), keys[0])
     _, first = _run(name, unstack_config(stacked, 0), keys[0])
@@ -172,13 +179,7 @@ def test_instrument_prices_vmap_equals_alone(name):
     else:
         base = TINY[name].replace(instruments="default", measure_head="factored")
     configs = [base.replace(cost=c, instrument_costs=p) for c, p in [(0.0, (0.05, 0.3)), (0.1, (0.3, 0.0))]]
-    keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)])
-    stacked = stack_configs([c.validate() for c in configs])
-    _, rows = _compiled(name)[1](stacked, keys)
-    for i in range(2):
-        _, alone = _run(name, unstack_config(stacked, i), keys[i])
-        for field in ("eval_return", "train_return", "loss", "eval_measurements"):
-            np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
+    rows = _assert_batch_equals_alone(name, configs, jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
     assert np.all(np.isfinite(rows.columns()["loss"]))
 
 
@@ -188,13 +189,7 @@ def test_cost_ranges_vmap_equals_alone(name):
     alone."""
     base = TINY[name].replace(cost_conditioned=True)
     configs = [base.replace(cost_low=lo, cost_high=hi) for lo, hi in [(0.0, 0.5), (0.2, 0.2)]]
-    keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)])
-    stacked = stack_configs([c.validate() for c in configs])
-    _, rows = _compiled(name)[1](stacked, keys)
-    for i in range(2):
-        _, alone = _run(name, unstack_config(stacked, i), keys[i])
-        for field in ("eval_return", "train_return", "loss", "eval_measurements"):
-            np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
+    _assert_batch_equals_alone(name, configs, jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
 
 
 @pytest.mark.parametrize("name", ["dqn", "ppo"])
