@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import amjax
-from amjax.agents import DQNConfig, PPOConfig
+from amjax.agents import DQNConfig, DRQNConfig, PPOConfig, PPORNNConfig
 
 T = 60
 
@@ -105,6 +105,6 @@ def test_bad_cost_ranges_are_refused(kwargs, message):
     ({"cost_conditioned": True, "vanilla": True}, "vanilla"),
 ])
 def test_configs_check_the_cost_range(fields, message):
-    for config in (DQNConfig, PPOConfig):
+    for config in (DQNConfig, PPOConfig, DRQNConfig, PPORNNConfig):
         with pytest.raises(ValueError, match=message):
             config(**fields).validate()
