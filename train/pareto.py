@@ -95,7 +95,8 @@ def run(args: argparse.Namespace, error: Any) -> int:
              f"each ({ratio:.2f}x a specialist's). Medians over seeds, 100 fresh test episodes per cost.", "",
              to_markdown(_costs_as_text(front_medians(points))), ""]
     if special is not None:
-        lines += ["Against the specialists (their best policies re-scored by their sweep on 100 fresh episodes):", "",
+        lines += ["Against the specialists (their best policies re-scored by their sweep on 100 fresh episodes; gap: "
+                  "(conditioned - specialists) / |specialists|, positive when the conditioned agent scores more):", "",
                   to_markdown(_costs_as_text(front_table(points, special))), ""]
     (out / "table.md").write_text("\n".join(lines))
     plot_front(points, special, out / "front.png", title=args.env)

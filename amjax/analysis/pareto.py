@@ -57,11 +57,12 @@ def specialist_medians(summary: pd.DataFrame) -> pd.DataFrame:
 
 
 def front_table(points: pd.DataFrame, specialists: pd.DataFrame) -> pd.DataFrame:
-    """At the specialists' costs: the conditioned medians, the specialists' and their ratio (conditioned /
-    specialists' costed reward)."""
+    """At the specialists' costs: the conditioned medians, the specialists' and the gap, (conditioned -
+    specialists) / |specialists| in costed reward: positive when the conditioned agent scores more, whatever the
+    sign of the rewards (Acrobot's are negative)."""
     special = specialist_medians(specialists)
     table = front_medians(points).merge(special, on=["agent", "cost"], suffixes=(" conditioned", " specialists"))
-    table["ratio"] = table["return conditioned"] / table["return specialists"]
+    table["gap"] = (table["return conditioned"] - table["return specialists"]) / table["return specialists"].abs()
     return table
 
 

@@ -102,6 +102,7 @@ def test_ppo_balances_brax_inverted_pendulum():
     assert np.median(best) >= 950, f"best test returns per seed {best.round(1).tolist()}"
 
 
+@pytest.mark.slow
 def test_a_single_cost_range_trains_like_the_fixed_cost():
     """A conditioned run whose range is the single cost 0.2 trains, in distribution over 24 seeds, like an ordinary
     run at 0.2 (two-sided Mann-Whitney U on each seed's mean test costed return and measured fraction over its

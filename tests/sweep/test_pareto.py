@@ -28,7 +28,7 @@ def test_writes_the_front_the_table_and_the_plot(front_folder):
     steps = points["raw_return"]  # CartPole pays 1 per step: raw return = episode length
     assert ((points["raw_return"] - points["return"]) - points.cost * points.measured * steps).abs().max() < 1e-2
     table = (front_folder / "table.md").read_text()
-    assert "| ppo | 0.2 |" in table and "ratio" in table
+    assert "| ppo | 0.2 |" in table and "gap" in table
     assert (front_folder / "front.png").stat().st_size > 10_000
     # The conditioned run takes 1.5x a specialist's env steps, rounded down to whole evaluation periods.
     conditioned = load_results(front_folder / "conditioned").summary
@@ -49,7 +49,11 @@ def test_table_ratio_against_the_specialists(front_folder):
     table = front_table(points, specialists)
     assert list(table.cost) == [0.2]
     row = table.iloc[0]
-    assert row["ratio"] == pytest.approx(row["return conditioned"] / row["return specialists"])
+    gap = (row["return conditioned"] - row["return specialists"]) / abs(row["return specialists"])
+    assert row["gap"] == pytest.approx(gap)
+    negative = front_table(points.assign(**{"return": -points["return"]}),
+                           specialists.assign(best_policy_return=-specialists.best_policy_return))
+    assert negative["gap"].iloc[0] == pytest.approx(-gap)  # a higher (less negative) reward is a positive gap
 
 
 def test_front_of_an_ordinary_sweep_is_refused(front_folder):
