@@ -143,14 +143,17 @@ def _run(name, config, key):
 
 
 def _assert_batch_equals_alone(name, configs, keys):
-    """`configs` trained as one vmapped program: each equals its run alone (returns the batch's rows)."""
+    """`configs` trained as one vmapped program: each equals its run alone (returns the batch's rows and the
+    final states of the runs alone)."""
     stacked = stack_configs([c.validate() for c in configs])
     _, rows = _compiled(name)[1](stacked, keys)
+    states = []
     for i in range(len(configs)):
-        _, alone = _run(name, unstack_config(stacked, i), keys[i])
+        state, alone = _run(name, unstack_config(stacked, i), keys[i])
+        states.append(state)
         for field in ("eval_return", "train_return", "loss", "eval_measurements"):
             np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
-    return rows
+    return rows, states
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn", "ppo-box"])
@@ -179,26 +182,20 @@ def test_instrument_prices_vmap_equals_alone(name):
     else:
         base = TINY[name].replace(instruments="default", measure_head="factored")
     configs = [base.replace(cost=c, instrument_costs=p) for c, p in [(0.0, (0.05, 0.3)), (0.1, (0.3, 0.0))]]
-    rows = _assert_batch_equals_alone(name, configs, jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
+    rows, _ = _assert_batch_equals_alone(name, configs, jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
     assert np.all(np.isfinite(rows.columns()["loss"]))
 
 
 @pytest.mark.parametrize("name", ["dqn", "ppo"])
-def test_cost_ranges_vmap_equals_alone(name):
+def test_cost_conditioned_runs(name):
     """A cost-conditioned run's range is traced: a batch of ranges is one program, config i in it equals config i
-    alone."""
+    alone. The greedy action of a trained conditioned policy changes with the cost it sees (the scaled last entry
+    of the observation), and `SavedPolicy.evaluate(cost=c)` plays episodes at cost c."""
     base = TINY[name].replace(cost_conditioned=True)
-    configs = [base.replace(cost_low=lo, cost_high=hi) for lo, hi in [(0.0, 0.5), (0.2, 0.2)]]
-    _assert_batch_equals_alone(name, configs, jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
-
-
-@pytest.mark.parametrize("name", ["dqn", "ppo"])
-def test_a_conditioned_policy_acts_on_the_cost(name):
-    """The greedy action of a cost-conditioned policy changes with the cost it sees (the scaled last entry of the
-    observation), and `SavedPolicy.evaluate(cost=c)` plays episodes at cost c."""
-    config = TINY[name].replace(cost_conditioned=True, cost_high=1.0).validate()
-    states, _ = _run(name, config, jax.random.PRNGKey(3))
-    saved = SavedPolicy(agent_of(config), config, states.best_params)
+    configs = [base.replace(cost_low=lo, cost_high=hi).validate() for lo, hi in [(0.0, 1.0), (0.2, 0.2)]]
+    _, states = _assert_batch_equals_alone(name, configs, jnp.stack([jax.random.PRNGKey(s) for s in (3, 1)]))
+    config = configs[0]
+    saved = SavedPolicy(agent_of(config), config, states[0].best_params)
     act, carry = saved.policy(num_envs=256)
     obs = jax.random.uniform(jax.random.key(0), (256, 6), minval=-0.2, maxval=0.2).at[:, 4].set(0.0)  # stale
     actions = [np.asarray(act(EnvBatch(obs.at[:, -1].set(seen), None, jnp.ones(256, bool)), carry,
@@ -211,12 +208,13 @@ def test_a_conditioned_policy_acts_on_the_cost(name):
         saved.evaluate(jax.random.key(2), 4, cost=-1.0)
     # A NumPy actor (for a Gymnasium env at a fixed cost) appends the scaled cost itself.
     for seen, cost in ((-1.0, 0.0), (1.0, 1.0)):
-        got = [saved.actor(cost=cost)(np.asarray(o[:-1])) for o in obs.at[:, -1].set(seen)[:16]]
+        actor = saved.actor(cost=cost)
+        got = [actor(np.asarray(o[:-1])) for o in obs.at[:, -1].set(seen)[:16]]
         np.testing.assert_array_equal(got, actions[(seen > 0)][:16])
     with pytest.raises(ValueError, match="cost: a cost-conditioned policy acts at a cost"):
         saved.actor()
     with pytest.raises(ValueError, match="not cost-conditioned"):
-        SavedPolicy(agent_of(TINY[name]), TINY[name], states.best_params).actor(cost=0.1)
+        SavedPolicy(agent_of(TINY[name]), TINY[name], states[0].best_params).actor(cost=0.1)
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn"])
