@@ -20,14 +20,16 @@ STEPS_FACTOR = 1.5  # the conditioned run's env steps, at most this many times o
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "pareto", help="one cost-conditioned agent per seed: the cost front, with per-cost specialists",
-        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--env", default="CartPole-v0", help="environment id")
-    parser.add_argument("--agent", nargs="+", default=["dqn", "ppo"], metavar="AGENT", help="agents")
-    parser.add_argument("--seeds", type=int, default=5, help="seeds (0..N-1)")
-    parser.add_argument("--cost-high", type=float, default=0.5, help="costs are drawn from [0, COST_HIGH]")
-    parser.add_argument("--grid-step", type=float, default=0.05, help="the front's cost grid: 0, STEP, ..., COST_HIGH")
+        description=" ".join(__doc__.split("\n\n")[0].split()))
+    parser.add_argument("--env", default="CartPole-v0", help="environment id (default: CartPole-v0)")
+    parser.add_argument("--agent", nargs="+", default=["dqn", "ppo"], metavar="AGENT", help="agents (default: dqn ppo)")
+    parser.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1 (default: 5)")
+    parser.add_argument("--cost-high", type=float, default=0.5,
+                        help="costs are drawn from [0, COST_HIGH] (default: 0.5)")
+    parser.add_argument("--grid-step", type=float, default=0.05,
+                        help="the front's cost grid: 0, STEP, ..., COST_HIGH (default: 0.05)")
     parser.add_argument("--specialist-costs", nargs="*", type=float, default=[0.1, 0.2, 0.3], metavar="C",
-                        help="costs of the per-cost specialists (none: skip them)")
+                        help="costs of the per-cost specialists; none: skip them (default: 0.1 0.2 0.3)")
     parser.add_argument("--steps", type=int, help="a specialist's env steps (default: the env's replication budget)")
     parser.add_argument("--eval-every", type=int, help="env steps between evaluations (default: the env's)")
     parser.add_argument("--out", required=True, help="output folder (rerun to resume)")
