@@ -15,7 +15,7 @@ from amjax.wrappers.active_measure import (
     AlwaysMeasured,
     MeasureParams,
 )
-from amjax.wrappers.instruments import resolve_instruments
+from amjax.wrappers.instruments import check_instrument_values, resolve_instruments
 
 
 def make(
@@ -92,18 +92,10 @@ def make(
                                reward_timing=reward_timing, instruments=instruments,
                                cost_conditioned=cost_range is not None)
     k = len(wrapped.instruments)
-    prices = {"instrument_costs": instrument_costs, "instrument_noise": instrument_noise}
-    for name, value in prices.items():
-        if value is None:
-            prices[name] = [0.0] * k if k else None
-            continue
-        if not k:
-            raise ValueError(f"{name}: only with instruments (there are none; set instruments first)")
-        value = check_real(name, value, low=0.0)
-        if value.shape[-1:] != (k,):
-            raise ValueError(f"{name}: got shape {value.shape}; allowed: one number per instrument, {k} of them "
-                             "(a last axis of that length; leading axes to vmap over)")
-        prices[name] = value
+    prices = {
+        name: ([0.0] * k if k else None) if value is None else check_instrument_values(name, value, k, batched=True)
+        for name, value in (("instrument_costs", instrument_costs), ("instrument_noise", instrument_noise))
+    }
     return wrapped, measure_params(env_params, cost, noise_std, budget, **prices, cost_range=cost_range)
 
 
@@ -154,6 +146,7 @@ def measure_params(
     def optional(value: Any) -> Any:
         return None if value is None else jnp.asarray(value, jnp.float32)
 
+    low, high = (None, None) if cost_range is None else map(optional, cost_range)
     return MeasureParams(
         env_params=env_params,
         cost=jnp.asarray(cost, jnp.float32),
@@ -161,8 +154,8 @@ def measure_params(
         budget=optional(budget),
         instrument_costs=optional(instrument_costs),
         instrument_noise=optional(instrument_noise),
-        cost_low=None if cost_range is None else optional(cost_range[0]),
-        cost_high=None if cost_range is None else optional(cost_range[1]),
-        cost_scale_low=None if cost_range is None else optional(cost_range[0]),
-        cost_scale_high=None if cost_range is None else optional(cost_range[1]),
+        cost_low=low,  # the draw range; evaluating at another cost changes it ...
+        cost_high=high,
+        cost_scale_low=low,  # ... and keeps the training range the cost is scaled by
+        cost_scale_high=high,
     )

@@ -101,30 +101,26 @@ def test_sweep_flag_corpus(tmp_path, capsys, flags, message):
     assert not out.exists()
 
 
-@pytest.mark.parametrize(("flags", "message"), [
-    (["--seeds", "0"], "--seeds: got 0"),
-    (["--env", "Pong-v0"], "--env: no replication budget for Pong-v0"),
-    (["--agent", "sarsa"], "sarsa"),
-    (["--max-batch", "0"], "--max-batch: got 0"),
-    (["--seeds", "x"], "argument --seeds: invalid int value"),
-])
-def test_replicate_flag_corpus(tmp_path, capsys, flags, message):
-    code, err = _run(["replicate", "--out", str(tmp_path / "never"), *flags], capsys)
-    assert code == 2 and message in err and "Traceback" not in err
-    assert not (tmp_path / "never").exists()
+COMMAND_CASES = [
+    ("replicate", ["--seeds", "0"], "--seeds: got 0"),
+    ("replicate", ["--env", "Pong-v0"], "--env: no replication budget for Pong-v0"),
+    ("replicate", ["--agent", "sarsa"], "sarsa"),
+    ("replicate", ["--max-batch", "0"], "--max-batch: got 0"),
+    ("replicate", ["--seeds", "x"], "argument --seeds: invalid int value"),
+    ("pareto", ["--seeds", "0"], "--seeds: got 0"),
+    ("pareto", ["--cost-high", "0"], "--cost-high: got 0"),
+    ("pareto", ["--grid-step", "0"], "--grid-step: got 0"),
+    ("pareto", ["--grid-step", "0.9"], "--grid-step: got 0.9"),
+    ("pareto", ["--specialist-costs", "-0.1"], "--specialist-costs: got -0.1"),
+    ("pareto", ["--steps", "0"], "--steps: got 0"),
+    ("pareto", ["--agent", "sarsa"], "sarsa"),
+]
 
 
-@pytest.mark.parametrize(("flags", "message"), [
-    (["--seeds", "0"], "--seeds: got 0"),
-    (["--cost-high", "0"], "--cost-high: got 0"),
-    (["--grid-step", "0"], "--grid-step: got 0"),
-    (["--grid-step", "0.9"], "--grid-step: got 0.9"),
-    (["--specialist-costs", "-0.1"], "--specialist-costs: got -0.1"),
-    (["--steps", "0"], "--steps: got 0"),
-    (["--agent", "sarsa"], "sarsa"),
-])
-def test_pareto_flag_corpus(tmp_path, capsys, flags, message):
-    code, err = _run(["pareto", "--out", str(tmp_path / "never"), *flags], capsys)
+@pytest.mark.parametrize(("command", "flags", "message"), COMMAND_CASES,
+                         ids=[f"{c[0]} {' '.join(c[1])}" for c in COMMAND_CASES])
+def test_replicate_and_pareto_flag_corpus(tmp_path, capsys, command, flags, message):
+    code, err = _run([command, "--out", str(tmp_path / "never"), *flags], capsys)
     assert code == 2 and message in err and "Traceback" not in err, err
     assert not (tmp_path / "never").exists()
 

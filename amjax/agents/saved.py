@@ -27,7 +27,7 @@ from amjax.agents.rollout import EnvBatch
 from amjax.agents.training import Policy, evaluate_greedy
 from amjax.files import atomic_write
 from amjax.validation import check_real
-from amjax.wrappers.active_measure import MeasureParams, scaled_cost
+from amjax.wrappers.active_measure import scaled_cost
 
 FORMAT = "amjax-policy"
 VERSION = 1
@@ -100,9 +100,9 @@ class Actor:
             if cost is None:
                 raise ValueError("cost: a cost-conditioned policy acts at a cost; allowed values: a number >= 0 "
                                  "(e.g. actor(cost=0.2), in an env that charges 0.2)")
-            low, high = float(saved.config.cost_low), float(saved.config.cost_high)
-            scale = MeasureParams(None, None, None, cost_scale_low=jnp.float32(low), cost_scale_high=jnp.float32(high))
-            self._appended = np.asarray(scaled_cost(jnp.float32(check_real("cost", cost, low=0.0)), scale)).reshape(1)
+            seen = scaled_cost(jnp.float32(check_real("cost", cost, low=0.0)), jnp.float32(saved.config.cost_low),
+                               jnp.float32(saved.config.cost_high))
+            self._appended = np.asarray(seen).reshape(1)
         elif cost is not None:
             raise ValueError(f"cost: got {cost!r} for a policy that is not cost-conditioned; allowed values: None "
                              "(the env charges its own cost)")

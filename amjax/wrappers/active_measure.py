@@ -103,10 +103,9 @@ def decode_discrete(action: jax.Array, num_controls: int) -> tuple[jax.Array, ja
     return action % num_controls, action >= num_controls
 
 
-def scaled_cost(cost: jax.Array, params: MeasureParams) -> jax.Array:
-    """The cost as the agent sees it: [cost_scale_low, cost_scale_high] mapped to [-1, 1] (0 for a single cost, so
-    a single-cost range adds an input that is always 0: the fixed-cost network, one dead input wider)."""
-    low, high = params.cost_scale_low, params.cost_scale_high
+def scaled_cost(cost: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
+    """The cost as the agent sees it: the scaling range [low, high] mapped to [-1, 1] (0 for a single cost, so a
+    single-cost range adds an input that is always 0: the fixed-cost network, one dead input wider)."""
     width = jnp.where(high > low, high - low, 1.0)
     return jnp.where(high > low, 2.0 * (cost - low) / width - 1.0, 0.0).astype(jnp.float32)
 
@@ -257,8 +256,9 @@ class ActiveMeasure(GymnaxWrapper):
             low.append(jnp.zeros(1))
             high.append(jnp.ones(1))
         if self.cost_conditioned:  # [-1, 1], widened when the draw range leaves the scaling range
-            low.append(jnp.minimum(-1.0, scaled_cost(params.cost_low, params)).reshape(1))
-            high.append(jnp.maximum(1.0, scaled_cost(params.cost_high, params)).reshape(1))
+            scale = (params.cost_scale_low, params.cost_scale_high)
+            low.append(jnp.minimum(-1.0, scaled_cost(params.cost_low, *scale)).reshape(1))
+            high.append(jnp.maximum(1.0, scaled_cost(params.cost_high, *scale)).reshape(1))
         return jnp.concatenate(low), jnp.concatenate(high)
 
     @property
@@ -364,7 +364,8 @@ class ActiveMeasure(GymnaxWrapper):
             left = jnp.where(params.budget > 0, 1.0 - used / params.budget, 0.0)
             features.append(jnp.clip(left, 0.0, 1.0)[None])
         if self.cost_conditioned:
-            features.append(jnp.reshape(scaled_cost(counters["episode_cost"], params), (1,)))
+            seen = scaled_cost(counters["episode_cost"], params.cost_scale_low, params.cost_scale_high)
+            features.append(jnp.reshape(seen, (1,)))
         return jnp.concatenate([obs, *features])
 
     @partial(jax.jit, static_argnames=("self",))

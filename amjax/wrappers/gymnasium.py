@@ -27,7 +27,7 @@ from gymnax.environments import spaces as gymnax_spaces
 
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 from amjax.wrappers.active_measure import MODES, REWARD_TIMINGS, UNBOUNDED, check_extra_obs
-from amjax.wrappers.instruments import check_instruments, feature_owner
+from amjax.wrappers.instruments import check_instrument_values, check_instruments, feature_owner
 
 __all__ = ["ActiveMeasureWrapper", "GymnasiumEnv", "gymnasium_space", "to_gymnasium"]
 
@@ -187,7 +187,7 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         self._readings = max(1, len(self.instruments))
         self._owner = feature_owner(self.instruments) if self.instruments else np.zeros(inner_obs.shape, np.int32)
         self.instrument_costs, self.instrument_noise = (
-            self._per_instrument(name, value)
+            np.zeros(self._readings) if value is None else check_instrument_values(name, value, len(self.instruments))
             for name, value in (("instrument_costs", instrument_costs), ("instrument_noise", instrument_noise))
         )
         masks = 2**self._readings
@@ -231,18 +231,6 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         self._last_obs: np.ndarray | None = None
         self._view_rng: np.random.Generator | None = None
         self._restart_counters()
-
-    def _per_instrument(self, name: str, value: Any) -> np.ndarray:
-        """k numbers >= 0 (zeros if None); ValueError naming `name` otherwise."""
-        k = len(self.instruments)
-        if value is None:
-            return np.zeros(self._readings)
-        if not k:
-            raise ValueError(f"{name}: only with instruments (there are none; set instruments first)")
-        array = check_real(name, value, low=0.0)
-        if array.shape != (k,):
-            raise ValueError(f"{name}: got {value!r}; allowed values: {k} finite numbers >= 0, one per instrument")
-        return array
 
     def _restart_counters(self) -> None:
         """The options' counters at an episode's start (`_since` per instrument)."""

@@ -23,6 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from amjax.validation import check_real
+
 # Per env id: (name, observation indices) of each default instrument, cheapest first in spirit.
 DEFAULT_INSTRUMENTS: dict[str, tuple[tuple[str, tuple[int, ...]], ...]] = {
     # gymnax / Gymnasium CartPole: [x, x_dot, theta, theta_dot]
@@ -79,6 +81,19 @@ def check_instruments(instruments: Any, obs_size: int) -> tuple[tuple[int, ...],
         raise ValueError(f"instruments: {tuple(result)} must hold each observation index 0..{obs_size - 1} exactly "
                          f"once (the observation has {obs_size} features)")
     return tuple(result)
+
+
+def check_instrument_values(name: str, value: Any, num_instruments: int, batched: bool = False) -> np.ndarray:
+    """`value` as one number >= 0 per instrument (instrument_costs, instrument_noise); with `batched`, leading axes
+    to vmap over are allowed. ValueError naming `name` otherwise."""
+    if not num_instruments:
+        raise ValueError(f"{name}: only with instruments (there are none; set instruments first)")
+    array = check_real(name, value, low=0.0)
+    if (array.shape[-1:] if batched else array.shape) != (num_instruments,):
+        vmap = " (a last axis of that length; leading axes to vmap over)" if batched else ""
+        raise ValueError(f"{name}: got shape {array.shape}; allowed: one number per instrument, {num_instruments} "
+                         f"of them{vmap}")
+    return array
 
 
 def feature_owner(instruments: tuple[tuple[int, ...], ...]) -> np.ndarray:

@@ -264,7 +264,7 @@ def test_configs_check_instruments(fields, message):
 def test_numpy_wrapper_refuses_bad_instruments():
     with pytest.raises(ValueError, match="exactly once"):
         ActiveMeasureWrapper(gymnasium.make("CartPole-v1"), instruments=((0,), (1,)))
-    with pytest.raises(ValueError, match="one per instrument"):
+    with pytest.raises(ValueError, match="one number per instrument"):
         ActiveMeasureWrapper(gymnasium.make("CartPole-v1"), instruments=(CART, POLE), instrument_costs=(1.0,))
 
 
