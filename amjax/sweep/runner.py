@@ -286,6 +286,7 @@ def run_sweep(
     loggers: Sequence[RunLogger] = (),
     devices: Sequence[jax.Device] | None = None,
     metadata: Mapping[str, Any] | None = None,
+    cluster: str | None = None,
 ) -> SweepResult:
     """Train every configuration of `spec`, writing results under `out`; resumes a sweep already there.
 
@@ -306,6 +307,9 @@ def run_sweep(
         may resume on others.
       metadata: extra entries for a new folder's metadata.json (e.g. the budget a command line asked for before
         `round_schedule`).
+      cluster: run the batches on a cluster through submitit: "local:N" (N worker processes here) or
+        "slurm:PARTITION[:N]"; `out` must be on a filesystem the workers share. Results are the same as a local
+        run's, and either may resume the other (`amjax.sweep.cluster`).
 
     Raises:
       SweepMismatchError: `out` holds a different sweep.
@@ -313,6 +317,11 @@ def run_sweep(
       FolderBusyError: another running process is writing to `out`.
     """
     runs = expand(spec)  # validates everything before touching the disk
+    target = None
+    if cluster is not None:
+        from amjax.sweep.cluster import parse_cluster
+
+        target = parse_cluster(cluster)
     out = Path(out)
     hyper_columns = sorted({k for r in runs for k in r.hyperparams})
     devices = tuple(devices or sweep_devices())
@@ -332,7 +341,14 @@ def run_sweep(
         total_steps = len(runs) * spec.total_timesteps
         bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
         try:
-            for batch in batches:
+            if target is not None:
+                from amjax.sweep.cluster import drive
+
+                options = {"target_chunks": target_chunks, "checkpoint_every_s": checkpoint_every_s,
+                           "save_policies": save_policies}
+                results, rescored = drive(spec, out, batches, results, rescored, target, max_batch, len(devices),
+                                          options, bar)
+            for batch in batches if target is None else ():
                 results, rescored = _train_batch(
                     batch, out, results, hyper_columns, bar, target_chunks=target_chunks,
                     checkpoint_every_s=checkpoint_every_s, save_policies=save_policies, on_chunk=on_chunk,
