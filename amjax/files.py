@@ -50,9 +50,10 @@ def remove_partial_writes(folder: Path, recursive: bool = True) -> list[Path]:
 
 
 @contextlib.contextmanager
-def folder_lock(folder: Path, argument: str = "out") -> Iterator[None]:
+def folder_lock(folder: Path, argument: str = "out", wait: bool = False) -> Iterator[None]:
     """Hold an exclusive lock on `folder` (created if needed) for the block; the operating system releases it
-    when the process ends, however it ends. Raises FolderBusyError naming `argument` if another process holds it."""
+    when the process ends, however it ends. If another process holds it: wait for it with `wait`, else raise
+    FolderBusyError naming `argument`."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     if fcntl is None:
@@ -60,7 +61,7 @@ def folder_lock(folder: Path, argument: str = "out") -> Iterator[None]:
         return
     with open(folder / ".lock", "a+") as handle:
         try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(handle, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise FolderBusyError(
                 f"{argument}: {folder} is being written by another running process; wait for it to finish "

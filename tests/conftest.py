@@ -85,3 +85,26 @@ def _inner_keys(step_keys, mode: str = "last"):
 def inner_keys():
     """`inner_keys(step_keys, mode="last")`: the keys `ActiveMeasure.step` passes to its inner env."""
     return _inner_keys
+
+
+class SweepStopped(Exception):
+    """Raised by a `stop_sweep_after` callback: a sweep stopped after a chunk, as a kill would stop it."""
+
+
+@pytest.fixture
+def stop_sweep_after():
+    """`stop_sweep_after(n)`: an `on_chunk` callback for `run_sweep` that raises `stop_sweep_after.error`
+    (SweepStopped) after the n-th chunk."""
+
+    def make(chunks: int):
+        seen = []
+
+        def on_chunk(results):
+            seen.append(len(results))
+            if len(seen) == chunks:
+                raise SweepStopped
+
+        return on_chunk
+
+    make.error = SweepStopped
+    return make

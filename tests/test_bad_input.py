@@ -8,6 +8,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import submitit  # noqa: F401 (imported here, its log handlers bind the real stderr rather than a test's capture)
 
 from amjax.agents import DQNConfig, PolicyFileError, PPOConfig, load_policy
 from amjax.analysis import NotASweepError, load_results
@@ -81,6 +82,13 @@ SWEEP_CASES = [
     (["--set", "reward_timing=later"], "reward_timing: got 'later'"),
     (["--set", "=3"], "--set: expected NAME=VALUE"),
     (["--set", "gamma"], "--set: expected NAME=VALUE"),
+    (["--cluster", "local:0"], "--cluster: got 'local:0'; allowed values: local:N"),
+    (["--cluster", "ray"], "--cluster: got 'ray'"),
+    (["--cluster", "slurm:"], "--cluster: got 'slurm:'"),
+    (["--cluster-option", "time=60"], "--cluster-option: give --cluster too"),
+    (["--cluster", "local:2", "--cluster-option", "=3"], "--cluster-option: got '=3'"),
+    (["--cluster", "local:2", "--cluster-option", "account=lab"], "--cluster-option: 'account' is not a parameter"),
+    (["--cluster", "slurm:gpu", "--cluster-option", "acount=lab"], "allowed values: account,"),
 ]
 
 

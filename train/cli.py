@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
+import json
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -23,6 +24,7 @@ amjax.use_all_cores()
 from amjax.agents import ALGORITHMS  # noqa: E402
 from amjax.envs.registry import make_env  # noqa: E402
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep  # noqa: E402
+from amjax.sweep.cluster import check_engine, check_parameters, parse_cluster  # noqa: E402
 from amjax.sweep.grid import MAX_CONFIGS, expand, round_schedule  # noqa: E402
 from amjax.sweep.storage import UnreadableFileError  # noqa: E402
 from train import pareto, replicate, report  # noqa: E402
@@ -111,6 +113,13 @@ def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
     sweep.add_argument("--out", required=True, help="output folder (rerun with the same folder to resume)")
     sweep.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
     sweep.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    sweep.add_argument("--cluster", metavar="TARGET",
+                       help="run the batches as jobs through submitit (the [cluster] extra): local:N for N worker "
+                       "processes here, slurm:PARTITION[:JOBS] for Slurm jobs on a whole node each (--out must be "
+                       "on a filesystem the nodes share; docs/cluster.md)")
+    sweep.add_argument("--cluster-option", action="append", default=[], metavar="NAME=VALUE",
+                       help="a submitit executor parameter for the jobs, e.g. account=lab or time=600 (Slurm "
+                       "minutes); the value is read as JSON when it parses, else as text")
     add_logging_arguments(sweep)
 
     demo = commands.add_parser("demo", help="the quick-start sweep (a few minutes on 2 cores)")
@@ -161,6 +170,33 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
         spec = dataclasses.replace(spec, env_defaults={
             env: dict(REPLICATE_HYPERPARAMS[env]) for env in spec.envs if env in REPLICATE_HYPERPARAMS})
     return spec
+
+
+def cluster_from_args(args: argparse.Namespace) -> tuple[str | None, dict[str, Any]]:
+    """`--cluster` and `--cluster-option` read and checked (the target's form, the engine installed, the
+    parameters' names); (None, {}) for a local sweep."""
+    target, options = args.cluster, args.cluster_option
+    if target is None:
+        if options:
+            raise ValueError("--cluster-option: give --cluster too")
+        return None, {}
+    parameters: dict[str, Any] = {}
+    for option in options:
+        name, sep, text = option.partition("=")
+        if not sep or not name.isidentifier():
+            raise ValueError(f"--cluster-option: got {option!r}; allowed values: NAME=VALUE, NAME a submitit "
+                             "executor parameter (e.g. account=lab, time=600)")
+        try:
+            parameters[name] = json.loads(text)
+        except ValueError:
+            parameters[name] = text
+    try:
+        check_engine()
+        check_parameters(parse_cluster(target), parameters)
+    except (ValueError, ImportError) as error:
+        message = str(error).replace("cluster_parameters: ", "--cluster-option: ").replace("cluster: ", "--cluster: ")
+        raise type(error)(message) from None
+    return target, parameters
 
 
 def format_table(table: pd.DataFrame) -> str:
@@ -232,12 +268,13 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m train") -> in
                 print(f"{parser.prog}: {note}")
                 metadata["requested_schedule"] = requested
         expand(spec)  # every check, before anything is written
+        cluster, cluster_parameters = cluster_from_args(args) if args.command == "sweep" else (None, {})
         loggers = make_loggers(args, args.out)
     except (ValueError, TypeError, ImportError) as error:
         parser.error(str(error))  # exits with status 2
     try:
         result = run_sweep(spec, args.out, max_batch=max_batch, progress=not args.no_progress, loggers=loggers,
-                           metadata=metadata)
+                           metadata=metadata, cluster=cluster, cluster_parameters=cluster_parameters)
     except (SweepMismatchError, FolderBusyError, SweepTooLargeError, UnreadableFileError) as error:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return 2

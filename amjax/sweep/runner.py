@@ -28,6 +28,7 @@ from amjax.agents.saved import SavedPolicy, load_policy, save_policy
 from amjax.files import folder_lock, remove_partial_writes
 from amjax.sweep import storage
 from amjax.sweep.batches import Batch, chunk_evals, compiled_programs, plan_batches
+from amjax.sweep.cluster import check_engine, check_parameters, drive, merge_parts, parse_cluster
 from amjax.sweep.devices import config_sharding, sharded_jit, sweep_devices
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 from amjax.sweep.loggers import RunLogger
@@ -200,6 +201,13 @@ def _claim_folder(out: Path, spec: SweepSpec, runs: Sequence[RunConfig], extra: 
         )
 
 
+def _record_batch(out: Path, batch_name: str, where: Mapping[str, Any]) -> None:
+    """Note in metadata.json where a cluster job ran a batch (node, pid, devices, seconds, job id, attempts)."""
+    meta = json.loads((out / "metadata.json").read_text())
+    meta.setdefault("cluster_batches", {})[batch_name] = dict(where)
+    storage.write_json(out / "metadata.json", meta)
+
+
 def _train_batch(
     batch: Batch,
     out: Path,
@@ -286,6 +294,8 @@ def run_sweep(
     loggers: Sequence[RunLogger] = (),
     devices: Sequence[jax.Device] | None = None,
     metadata: Mapping[str, Any] | None = None,
+    cluster: str | None = None,
+    cluster_parameters: Mapping[str, Any] | None = None,
 ) -> SweepResult:
     """Train every configuration of `spec`, writing results under `out`; resumes a sweep already there.
 
@@ -296,16 +306,23 @@ def run_sweep(
         written after each chunk.
       checkpoint_every_s: train states are checkpointed after a chunk when this many seconds have passed
         since the last checkpoint (and always at the end of a batch).
-      on_chunk: called with the full results table after every chunk (e.g. to draw live plots).
+      on_chunk: called with the full results table after every chunk (e.g. to draw live plots); on a cluster,
+        after each batch is folded in.
       save_policies: keep each configuration's best policy in `out/policies/<config_id>.msgpack` (written with
         every checkpoint; load one with `load_sweep_policy(out, config_id)`).
       loggers: also send each chunk's new rows to these (e.g. `TensorBoardLogger(out / "tensorboard")`,
         `WandbLogger(project, out)`); they are closed when the sweep ends or stops.
       devices: the devices each batch's configurations are split over (default: `sweep_devices()`, every local
-        device: one per CPU core after `amjax.use_all_cores()`, else one). Results do not depend on it; a sweep
-        may resume on others.
+        device: one per CPU core after `amjax.use_all_cores()`, else one). Results agree across device counts to
+        float rounding (bit for bit on the same count: XLA's rounding can depend on a shard's size); a sweep may
+        resume on another count.
       metadata: extra entries for a new folder's metadata.json (e.g. the budget a command line asked for before
         `round_schedule`).
+      cluster: run the batches as jobs through submitit: "local:N" (N worker processes here) or
+        "slurm:PARTITION[:JOBS]" (a whole node per job); `out` must be on a filesystem the workers share. Results
+        are the same as a local run's, and either may resume the other (`amjax.sweep.cluster`, docs/cluster.md).
+      cluster_parameters: submitit executor parameters for the jobs (e.g. `{"account": "lab", "time": 600}` for
+        Slurm).
 
     Raises:
       SweepMismatchError: `out` holds a different sweep.
@@ -313,6 +330,11 @@ def run_sweep(
       FolderBusyError: another running process is writing to `out`.
     """
     runs = expand(spec)  # validates everything before touching the disk
+    target = None
+    if cluster is not None:
+        target = parse_cluster(cluster)
+        check_engine()
+        check_parameters(target, cluster_parameters)
     out = Path(out)
     hyper_columns = sorted({k for r in runs for k in r.hyperparams})
     devices = tuple(devices or sweep_devices())
@@ -327,17 +349,32 @@ def run_sweep(
         remove_partial_writes(out)  # temporary files of writes that a killed run left unfinished
         _claim_folder(out, spec, runs, metadata or {})
         wall_time = storage.WallTime(out / "wall_time.json")
-        results = storage.read_table(out / "results")
-        rescored = storage.read_table(out / "rescored")
+        # Parts a cluster run left (stopped before it folded them in): their rows and checkpoints, so either
+        # runner resumes where the other stopped.
+        results, rescored = merge_parts(out, storage.read_table(out / "results"), storage.read_table(out / "rescored"))
         total_steps = len(runs) * spec.total_timesteps
         bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
         try:
-            for batch in batches:
-                results, rescored = _train_batch(
-                    batch, out, results, hyper_columns, bar, target_chunks=target_chunks,
-                    checkpoint_every_s=checkpoint_every_s, save_policies=save_policies, on_chunk=on_chunk,
-                    loggers=loggers, devices=devices, wall_time=wall_time, rescored=rescored,
-                )
+            if target is None:
+                for batch in batches:
+                    results, rescored = _train_batch(
+                        batch, out, results, hyper_columns, bar, target_chunks=target_chunks,
+                        checkpoint_every_s=checkpoint_every_s, save_policies=save_policies, on_chunk=on_chunk,
+                        loggers=loggers, devices=devices, wall_time=wall_time, rescored=rescored,
+                    )
+            else:
+                def on_rows(rows: pd.DataFrame, results: pd.DataFrame) -> None:  # a batch folded in
+                    wall_time.save()
+                    for logger in loggers:
+                        logger.log(rows)
+                    if on_chunk is not None:
+                        on_chunk(results)
+
+                options = {"target_chunks": target_chunks, "checkpoint_every_s": checkpoint_every_s,
+                           "save_policies": save_policies}
+                results, rescored = drive(spec, out, batches, results, rescored, target, max_batch, len(devices),
+                                          options, bar, parameters=cluster_parameters, on_rows=on_rows,
+                                          record=functools.partial(_record_batch, out))
         finally:
             bar.close()
             for logger in loggers:

@@ -1,4 +1,6 @@
-"""Configurations spread over CPU devices: same results as on one device, padding, resume across device counts."""
+"""Configurations spread over CPU devices: the same results as on one device (bit for bit in this small case; in
+general to float rounding, since XLA's rounding can depend on a shard's size), padding, resume across device
+counts."""
 
 from __future__ import annotations
 

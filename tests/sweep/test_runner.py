@@ -32,21 +32,6 @@ TINY = SweepSpec(
 VALUE_COLUMNS = ["eval_return", "eval_raw_return", "eval_measurements", "train_return", "loss"]
 
 
-class Interrupt(Exception):
-    pass
-
-
-def _interrupt_after(chunks: int):
-    seen = []
-
-    def on_chunk(results):
-        seen.append(len(results))
-        if len(seen) == chunks:
-            raise Interrupt
-
-    return on_chunk
-
-
 @pytest.fixture(scope="module")
 def full_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("full")
@@ -147,12 +132,12 @@ def test_best_policy_per_config_reproduces_its_best_score(full_run):
 
 
 @pytest.mark.parametrize("checkpoint_every_s", [0.0, 1e9])
-def test_resume_after_interrupt(tmp_path, full_run, checkpoint_every_s):
+def test_resume_after_interrupt(tmp_path, full_run, checkpoint_every_s, stop_sweep_after):
     """Interrupted after 2 of 4 chunks (with a checkpoint, or with results written past the last checkpoint),
     the rerun finishes with exactly the rows of an uninterrupted run."""
-    with pytest.raises(Interrupt):
+    with pytest.raises(stop_sweep_after.error):
         run_sweep(TINY, tmp_path, progress=False, target_chunks=4, checkpoint_every_s=checkpoint_every_s,
-                  on_chunk=_interrupt_after(2))
+                  on_chunk=stop_sweep_after(2))
     partial = pd.read_parquet(tmp_path / "results.parquet")
     assert len(partial) == 8 * 2
     resumed = run_sweep(TINY, tmp_path, progress=False, target_chunks=4, checkpoint_every_s=checkpoint_every_s)

@@ -1,0 +1,148 @@
+"""Sweeps on a cluster (`amjax.sweep.cluster`) with a real local submitit cluster: worker processes that train the
+batches, one of them SIGKILLed mid-batch; the same rows as the local runner; either runner resuming the other."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from amjax.sweep import SweepSpec, run_sweep
+from amjax.sweep.cluster import ClusterTarget, check_parameters, make_executor, parse_cluster
+
+SPEC = SweepSpec(
+    envs=("CartPole-v0",),
+    agents=("ppo", "dqn"),
+    costs=(0.0, 0.2),
+    seeds=(0, 1),
+    total_timesteps=8192,
+    eval_every=1024,
+    eval_episodes=2,
+    hyperparams={"ppo.num_envs": 4, "ppo.num_steps": 32, "rescore_episodes": 4},
+)
+KEY = ["config_id", "env_steps"]
+VALUE_COLUMNS = ["eval_return", "eval_raw_return", "eval_measurements", "train_return", "loss"]
+RESCORED_COLUMNS = ["best_policy_return", "best_policy_raw_return", "best_policy_measured_fraction"]
+
+
+def _part_rows(out: Path, agent: str) -> int:
+    return sum(len(pd.read_parquet(p)) for p in (out / "parts").glob(f"{agent}-*/results.parquet"))
+
+
+def _assert_same_results(out: Path, local) -> None:
+    """`out` holds exactly the local run's rows, re-scores and policies, with nothing left of the cluster's parts
+    or of submitit's pickled calls."""
+    results = pd.read_parquet(out / "results.parquet")
+    assert not results.duplicated(KEY).any()
+    a = results.sort_values(KEY).reset_index(drop=True)
+    b = local.results.sort_values(KEY).reset_index(drop=True)
+    pd.testing.assert_frame_equal(a[KEY], b[KEY])
+    np.testing.assert_allclose(a[VALUE_COLUMNS].to_numpy(float), b[VALUE_COLUMNS].to_numpy(float), rtol=1e-5)
+    summary = pd.read_parquet(out / "summary.parquet").sort_values("config_id").reset_index(drop=True)
+    expected = local.summary.sort_values("config_id").reset_index(drop=True)
+    np.testing.assert_allclose(summary[RESCORED_COLUMNS].to_numpy(float), expected[RESCORED_COLUMNS].to_numpy(float),
+                               rtol=1e-5)
+    assert not (out / "parts").exists()
+    assert not list(out.rglob("*.pkl"))
+    policies = sorted(p.name for p in (out / "policies").iterdir())
+    assert policies == sorted(f"{c}.msgpack" for c in local.summary.config_id)
+
+
+def test_cluster_and_local_runs_resume_each_other_through_kills(tmp_path, stop_sweep_after):
+    """One sweep folder through every hand-over, each stop a hard one:
+    1. the local runner, stopped after 2 chunks of the PPO batch;
+    2. `local:2` resumes it (PPO from the local checkpoint); once DQN has begun, the driver and its workers are
+       SIGKILLed;
+    3. the local runner folds the unfinished parts back and is stopped again after a chunk;
+    4. `local:2` finishes, its DQN worker SIGKILLed mid-batch: the driver submits the batch again and the new
+       worker resumes from the part's checkpoint.
+    The rows, re-scores and policies equal an uninterrupted local run's."""
+    out = tmp_path / "run"
+    with pytest.raises(stop_sweep_after.error):
+        run_sweep(SPEC, out, progress=False, target_chunks=8, checkpoint_every_s=0, on_chunk=stop_sweep_after(2))
+    local_rows = len(pd.read_parquet(out / "results.parquet"))
+
+    driver = (f"from amjax.sweep import SweepSpec, run_sweep; spec = SweepSpec.from_json({SPEC.to_json()!r}); "
+              f"run_sweep(spec, {str(out)!r}, progress=False, target_chunks=8, checkpoint_every_s=0, "
+              "cluster='local:2')")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}
+    process = subprocess.Popen([sys.executable, "-c", driver], env=env, start_new_session=True,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    try:  # once the DQN batch has begun (the PPO batch went on from the local checkpoint)
+        while not _part_rows(out, "dqn"):
+            assert process.poll() is None, "the cluster run ended before it could be killed"
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)  # the driver and its workers, as a lost login session would
+    process.wait()
+
+    with pytest.raises(stop_sweep_after.error):
+        run_sweep(SPEC, out, progress=False, target_chunks=8, checkpoint_every_s=0, on_chunk=stop_sweep_after(1))
+    assert not (out / "parts").exists()
+    assert len(pd.read_parquet(out / "results.parquet")) > local_rows
+
+    killed = []
+
+    def kill_the_dqn_worker():
+        seen = None
+        while time.monotonic() < deadline and not killed:
+            for part in (out / "parts").glob("dqn-*"):
+                if (part / "worker.json").exists() and (part / "results.parquet").exists():
+                    rows = len(pd.read_parquet(part / "results.parquet"))
+                    seen = rows if seen is None else seen
+                    if rows > seen:  # a chunk trained by this worker
+                        killed.append(json.loads((part / "worker.json").read_text())["pid"])
+                        os.kill(killed[0], signal.SIGKILL)
+            time.sleep(0.05)
+
+    threading.Thread(target=kill_the_dqn_worker, daemon=True).start()
+    result = run_sweep(SPEC, out, progress=False, target_chunks=8, checkpoint_every_s=0, cluster="local:2")
+    assert killed
+    reference = run_sweep(SPEC, tmp_path / "local", progress=False, target_chunks=8)
+    _assert_same_results(out, reference)
+    assert len(result.summary) == len(reference.summary)
+    ran = json.loads((out / "metadata.json").read_text())["cluster_batches"]
+    assert [info["attempts"] for name, info in ran.items() if name.startswith("dqn")] == [2]
+    assert {info["node"] for info in ran.values()} == {socket.gethostname()}
+    assert killed[0] not in {info["pid"] for info in ran.values()}  # the second worker finished the batch
+
+
+def test_targets_and_parameters_are_checked_before_anything_is_written(tmp_path):
+    assert parse_cluster("local:3") == ClusterTarget("local", 3)
+    assert parse_cluster("slurm:gpu-a100") == ClusterTarget("slurm", 64, "gpu-a100")
+    assert parse_cluster("slurm:cpu:8") == ClusterTarget("slurm", 8, "cpu")
+    for bad in ("local", "local:0", "local:-1", "slurm:", "ray:4", "slurm:cpu:0"):
+        with pytest.raises(ValueError, match=f"cluster: got '{bad}'; allowed values: local:N"):
+            run_sweep(SPEC, tmp_path / "never", cluster=bad)
+    with pytest.raises(ValueError, match="'account' is not a parameter of submitit's local executor"):
+        run_sweep(SPEC, tmp_path / "never", cluster="local:2", cluster_parameters={"account": "lab"})
+    assert not (tmp_path / "never").exists()
+    check_parameters(ClusterTarget("slurm", 4, "cpu"), {"account": "lab", "time": 600, "mem": "64G"})
+
+
+def test_slurm_jobs_take_a_whole_node_and_all_its_cores(tmp_path, monkeypatch):
+    """The sbatch script submitit would send (submitit needs `srun` on PATH to build it: a stand-in here)."""
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "bin" / "srun").write_text("#!/bin/sh\n")
+    (tmp_path / "bin" / "srun").chmod(0o755)
+    monkeypatch.setenv("PATH", f"{tmp_path / 'bin'}{os.pathsep}{os.environ['PATH']}")
+    executor = make_executor(parse_cluster("slurm:cpu:8"), tmp_path / "logs", 64,
+                             {"account": "lab", "setup": ["source ~/venv/bin/activate"]})
+    script = executor._make_submission_file_text("python -m submitit.core._submit", "uid")
+    for line in ("#SBATCH --partition=cpu", "#SBATCH --exclusive", "#SBATCH --nodes=1", "#SBATCH --account=lab",
+                 "export JAX_NUM_CPU_DEVICES=64", "source ~/venv/bin/activate"):
+        assert line in script, script
