@@ -115,6 +115,7 @@ COMMAND_CASES = [
     ("replicate", ["--agent", "sarsa"], "sarsa"),
     ("replicate", ["--max-batch", "0"], "--max-batch: got 0"),
     ("replicate", ["--seeds", "x"], "argument --seeds: invalid int value"),
+    ("replicate", ["--cluster", "local:0"], "--cluster: got 'local:0'"),
     ("pareto", ["--seeds", "0"], "--seeds: got 0"),
     ("pareto", ["--cost-high", "0"], "--cost-high: got 0"),
     ("pareto", ["--grid-step", "0"], "--grid-step: got 0"),

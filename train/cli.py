@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
-import json
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -24,11 +23,10 @@ amjax.use_all_cores()
 from amjax.agents import ALGORITHMS  # noqa: E402
 from amjax.envs.registry import make_env  # noqa: E402
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep  # noqa: E402
-from amjax.sweep.cluster import check_engine, check_parameters, parse_cluster  # noqa: E402
 from amjax.sweep.grid import MAX_CONFIGS, expand, round_schedule  # noqa: E402
 from amjax.sweep.storage import UnreadableFileError  # noqa: E402
 from train import pareto, replicate, report  # noqa: E402
-from train.flags import add_logging_arguments, make_loggers  # noqa: E402
+from train.flags import add_cluster_arguments, add_logging_arguments, cluster_from_args, make_loggers  # noqa: E402
 from train.presets import PRESETS, REPLICATE_HYPERPARAMS  # noqa: E402
 
 
@@ -113,13 +111,7 @@ def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
     sweep.add_argument("--out", required=True, help="output folder (rerun with the same folder to resume)")
     sweep.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
     sweep.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    sweep.add_argument("--cluster", metavar="TARGET",
-                       help="run the batches as jobs through submitit (the [cluster] extra): local:N for N worker "
-                       "processes here, slurm:PARTITION[:JOBS] for Slurm jobs on a whole node each (--out must be "
-                       "on a filesystem the nodes share; docs/cluster.md)")
-    sweep.add_argument("--cluster-option", action="append", default=[], metavar="NAME=VALUE",
-                       help="a submitit executor parameter for the jobs, e.g. account=lab or time=600 (Slurm "
-                       "minutes); the value is read as JSON when it parses, else as text")
+    add_cluster_arguments(sweep)
     add_logging_arguments(sweep)
 
     demo = commands.add_parser("demo", help="the quick-start sweep (a few minutes on 2 cores)")
@@ -170,33 +162,6 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
         spec = dataclasses.replace(spec, env_defaults={
             env: dict(REPLICATE_HYPERPARAMS[env]) for env in spec.envs if env in REPLICATE_HYPERPARAMS})
     return spec
-
-
-def cluster_from_args(args: argparse.Namespace) -> tuple[str | None, dict[str, Any]]:
-    """`--cluster` and `--cluster-option` read and checked (the target's form, the engine installed, the
-    parameters' names); (None, {}) for a local sweep."""
-    target, options = args.cluster, args.cluster_option
-    if target is None:
-        if options:
-            raise ValueError("--cluster-option: give --cluster too")
-        return None, {}
-    parameters: dict[str, Any] = {}
-    for option in options:
-        name, sep, text = option.partition("=")
-        if not sep or not name.isidentifier():
-            raise ValueError(f"--cluster-option: got {option!r}; allowed values: NAME=VALUE, NAME a submitit "
-                             "executor parameter (e.g. account=lab, time=600)")
-        try:
-            parameters[name] = json.loads(text)
-        except ValueError:
-            parameters[name] = text
-    try:
-        check_engine()
-        check_parameters(parse_cluster(target), parameters)
-    except (ValueError, ImportError) as error:
-        message = str(error).replace("cluster_parameters: ", "--cluster-option: ").replace("cluster: ", "--cluster: ")
-        raise type(error)(message) from None
-    return target, parameters
 
 
 def format_table(table: pd.DataFrame) -> str:

@@ -1,11 +1,13 @@
-"""Flags that several commands share (sweep, replicate): optional per-configuration logging."""
+"""Flags that several commands share (sweep, replicate): optional per-configuration logging, cluster targets."""
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 from typing import Any
 
+from amjax.sweep.cluster import check_engine, check_parameters, parse_cluster
 from amjax.sweep.loggers import TensorBoardLogger, WandbLogger
 
 
@@ -27,3 +29,41 @@ def make_loggers(args: argparse.Namespace, out: str) -> list[Any]:
     if getattr(args, "wandb", None):
         loggers.append(WandbLogger(args.wandb, out, mode=args.wandb_mode))
     return loggers
+
+
+def add_cluster_arguments(parser: argparse.ArgumentParser) -> None:
+    """--cluster / --cluster-option flags (batches as jobs through submitit; docs/cluster.md)."""
+    parser.add_argument("--cluster", metavar="TARGET",
+                        help="run the batches as jobs through submitit (the [cluster] extra): local:N for N worker "
+                        "processes here, slurm:PARTITION[:JOBS] for Slurm jobs on a whole node each (--out must be "
+                        "on a filesystem the nodes share; docs/cluster.md)")
+    parser.add_argument("--cluster-option", action="append", default=[], metavar="NAME=VALUE",
+                        help="a submitit executor parameter for the jobs, e.g. account=lab or time=600 (Slurm "
+                        "minutes); the value is read as JSON when it parses, else as text")
+
+
+def cluster_from_args(args: argparse.Namespace) -> tuple[str | None, dict[str, Any]]:
+    """`--cluster` and `--cluster-option` read and checked (the target's form, the engine installed, the
+    parameters' names); (None, {}) for a local sweep."""
+    target, options = getattr(args, "cluster", None), getattr(args, "cluster_option", [])
+    if target is None:
+        if options:
+            raise ValueError("--cluster-option: give --cluster too")
+        return None, {}
+    parameters: dict[str, Any] = {}
+    for option in options:
+        name, sep, text = option.partition("=")
+        if not sep or not name.isidentifier():
+            raise ValueError(f"--cluster-option: got {option!r}; allowed values: NAME=VALUE, NAME a submitit "
+                             "executor parameter (e.g. account=lab, time=600)")
+        try:
+            parameters[name] = json.loads(text)
+        except ValueError:
+            parameters[name] = text
+    try:
+        check_engine()
+        check_parameters(parse_cluster(target), parameters)
+    except (ValueError, ImportError) as error:
+        message = str(error).replace("cluster_parameters: ", "--cluster-option: ").replace("cluster: ", "--cluster: ")
+        raise type(error)(message) from None
+    return target, parameters

@@ -18,7 +18,7 @@ from typing import Any
 import pandas as pd
 
 from amjax.files import atomic_write, folder_lock, remove_partial_writes
-from train.flags import add_logging_arguments, make_loggers
+from train.flags import add_cluster_arguments, add_logging_arguments, cluster_from_args, make_loggers
 from train.presets import REPLICATE_BUDGETS, replicate_specs
 
 # The paper ran its recurrent agent (DRQN) on CartPole only; the default grid follows it.
@@ -61,6 +61,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--no-maps", action="store_true", help="skip the reports' measurement maps")
+    add_cluster_arguments(parser)
     add_logging_arguments(parser)
     return parser
 
@@ -104,13 +105,14 @@ def run(args: argparse.Namespace, error: Any) -> int:
         for spec in specs.values():
             expand(spec)  # every check before anything is written
         make_loggers(args, str(args.out))  # a missing package fails here, before anything is written
+        cluster = cluster_from_args(args)
     except (ValueError, TypeError, ImportError) as problem:
         error(str(problem))
     out = Path(args.out)
     try:
         with folder_lock(out):
             remove_partial_writes(out, recursive=False)  # each sweep folder cleans its own
-            index = _replicate(specs, out, args)
+            index = _replicate(specs, out, args, *cluster)
     except (SweepMismatchError, FolderBusyError, SweepTooLargeError, UnreadableFileError) as problem:
         print(f"replicate: error: {problem}", file=sys.stderr)
         return 2
@@ -118,8 +120,10 @@ def run(args: argparse.Namespace, error: Any) -> int:
     return 0
 
 
-def _replicate(specs: dict[str, Any], out: Path, args: argparse.Namespace) -> Path:
-    """Run (or resume) each environment's sweep and report, then write the joint report; returns its path."""
+def _replicate(specs: dict[str, Any], out: Path, args: argparse.Namespace, cluster: str | None,
+               cluster_parameters: dict[str, Any]) -> Path:
+    """Run (or resume) each environment's sweep (its batches on `cluster` if given) and report, then write the
+    joint report; returns its path."""
     from amjax.analysis import write_report
     from amjax.sweep import run_sweep
     from amjax.sweep.storage import WallTime
@@ -128,7 +132,8 @@ def _replicate(specs: dict[str, Any], out: Path, args: argparse.Namespace) -> Pa
     reports: dict[str, Path] = {}
     for env, spec in specs.items():
         run_sweep(spec, out / env, max_batch=args.max_batch, progress=not args.no_progress,
-                  loggers=make_loggers(args, str(out / env)))
+                  loggers=make_loggers(args, str(out / env)), cluster=cluster,
+                  cluster_parameters=cluster_parameters)
         wall_time = WallTime(out / env / "wall_time.json", new_invocation=False)
         reports[env] = write_report(out / env, maps=not args.no_maps)
         # The folder's account: training over every invocation (killed ones included) + reports.
