@@ -59,6 +59,7 @@ def _assert_same_results(out: Path, local) -> None:
     assert policies == sorted(f"{c}.msgpack" for c in local.summary.config_id)
 
 
+@pytest.mark.slow
 def test_cluster_and_local_runs_resume_each_other_through_kills(tmp_path, stop_sweep_after):
     """One sweep folder through every hand-over, each stop a hard one:
     1. the local runner, stopped after 2 chunks of the PPO batch;
