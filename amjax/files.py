@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 try:
@@ -38,12 +38,14 @@ def atomic_write(path: Path, write: Callable[[str], None]) -> None:
         raise
 
 
-def remove_partial_writes(folder: Path, recursive: bool = True) -> list[Path]:
+def remove_partial_writes(folder: Path, recursive: bool = True, skip: Sequence[str] = ()) -> list[Path]:
     """Delete the temporary files that interrupted `atomic_write` calls left in `folder` (and its subfolders
-    if `recursive`); returns them. Only safe while no other process writes there (hold `folder_lock`)."""
+    if `recursive`, bar those named in `skip`, which other processes own); returns them. Only safe while no
+    other process writes there (hold `folder_lock`)."""
     pattern = f".*{PARTIAL_SUFFIX}"
     folder = Path(folder)
     leftovers = sorted(folder.rglob(pattern) if recursive else folder.glob(pattern)) if folder.is_dir() else []
+    leftovers = [p for p in leftovers if p.relative_to(folder).parts[0] not in skip]
     for leftover in leftovers:
         leftover.unlink(missing_ok=True)
     return leftovers

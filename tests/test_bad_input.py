@@ -88,7 +88,8 @@ SWEEP_CASES = [
     (["--cluster-option", "time=60"], "--cluster-option: give --cluster too"),
     (["--cluster", "local:2", "--cluster-option", "=3"], "--cluster-option: got '=3'"),
     (["--cluster", "local:2", "--cluster-option", "account=lab"], "--cluster-option: 'account' is not a parameter"),
-    (["--cluster", "slurm:gpu", "--cluster-option", "acount=lab"], "allowed values: account,"),
+    (["--cluster", "slurm:gpu"], "--cluster: slurm:gpu needs Slurm's sbatch and srun on PATH"),
+    (["--cluster", "local:2", "--cluster-option", "setup=module load x"], "--cluster-option: setup must be a list"),
 ]
 
 

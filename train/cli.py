@@ -23,6 +23,7 @@ amjax.use_all_cores()
 from amjax.agents import ALGORITHMS  # noqa: E402
 from amjax.envs.registry import make_env  # noqa: E402
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep  # noqa: E402
+from amjax.sweep.cluster import ClusterError  # noqa: E402
 from amjax.sweep.grid import MAX_CONFIGS, expand, round_schedule  # noqa: E402
 from amjax.sweep.storage import UnreadableFileError  # noqa: E402
 from train import pareto, replicate, report  # noqa: E402
@@ -240,7 +241,7 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m train") -> in
     try:
         result = run_sweep(spec, args.out, max_batch=max_batch, progress=not args.no_progress, loggers=loggers,
                            metadata=metadata, cluster=cluster, cluster_parameters=cluster_parameters)
-    except (SweepMismatchError, FolderBusyError, SweepTooLargeError, UnreadableFileError) as error:
+    except (SweepMismatchError, FolderBusyError, SweepTooLargeError, UnreadableFileError, ClusterError) as error:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return 2
     except jax.errors.JaxRuntimeError as error:  # what the memory check cannot foresee (evaluation batches, XLA)

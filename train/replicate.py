@@ -92,6 +92,7 @@ def _index(out: Path, timings: dict[str, float], reports: dict[str, Path]) -> Pa
 def run(args: argparse.Namespace, error: Any) -> int:
     """Run the replication `args` describe; `error(message)` reports bad flags (exits 2)."""
     from amjax.sweep import FolderBusyError, SweepMismatchError, SweepTooLargeError
+    from amjax.sweep.cluster import ClusterError
     from amjax.sweep.grid import expand
     from amjax.sweep.storage import UnreadableFileError
 
@@ -113,7 +114,7 @@ def run(args: argparse.Namespace, error: Any) -> int:
         with folder_lock(out):
             remove_partial_writes(out, recursive=False)  # each sweep folder cleans its own
             index = _replicate(specs, out, args, *cluster)
-    except (SweepMismatchError, FolderBusyError, SweepTooLargeError, UnreadableFileError) as problem:
+    except (SweepMismatchError, FolderBusyError, SweepTooLargeError, UnreadableFileError, ClusterError) as problem:
         print(f"replicate: error: {problem}", file=sys.stderr)
         return 2
     print(f"\nReplication report: {index}")

@@ -4,9 +4,10 @@ The driver (`run_sweep(..., cluster=...)`) plans the batches as a local sweep do
 as a job: a Slurm job on a whole node (`slurm:PARTITION[:JOBS]`), or a local subprocess (`local:N`, for trying it
 on one machine and for the tests). A worker re-plans the sweep from its JSON spec, trains its batch into
 `out/parts/<batch>/` with the local runner's own code (results, re-scoring, checkpoints, policies, all written
-atomically) on every core it has, and the driver folds each finished part into `out/` exactly as a local sweep
-writes it. So results are the same row for row whatever the number of workers, and a sweep may resume locally
-after a cluster run and vice versa (unfinished parts are folded back when the folder is opened).
+atomically) on as many JAX devices as the driver has, and the driver folds each finished part into `out/` exactly
+as a local sweep writes it. So results are the same row for row, bit for bit, whatever the number of workers, and a
+sweep may resume locally after a cluster run and vice versa (parts ahead of `out` are folded back when the folder
+is opened).
 
 Faults: a worker that dies (SIGKILL, a lost node) makes its job fail; the driver submits the batch again (at most
 `MAX_ATTEMPTS` times), and the new worker resumes from the part's last checkpoint. A killed driver resumes as a
@@ -23,9 +24,11 @@ import os
 import re
 import shlex
 import shutil
+import signal
 import socket
+import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,7 +44,13 @@ POLL_S = 1.0
 MAX_ATTEMPTS = 3  # submissions of one batch before the sweep stops with an error
 SLURM_JOBS = 64
 LOGS = "cluster_logs"  # the jobs' logs, under `out`
+PARTS = "parts"  # the workers' folders, under `out`
+STALE_S = 900  # a job Slurm reports as PREEMPTED or UNKNOWN this long is cancelled and its batch run again
 COMPILE_CACHE = "compile_cache"  # the workers' shared JAX compilation cache, under `out`
+
+
+class ClusterError(RuntimeError):
+    """A batch could not be run on the cluster (submission refused, or its job failed every attempt)."""
 
 
 @dataclass(frozen=True)
@@ -68,18 +77,24 @@ def check_engine() -> None:
         raise ImportError("cluster: sweeps on a cluster need submitit: pip install 'amjax-rl[cluster]'")
 
 
-LOCAL_PARAMETERS = ("setup", "signal_delay_s", "stderr_to_stdout", "timeout_min")  # what LocalExecutor reads
+LOCAL_PARAMETERS = ("signal_delay_s", "stderr_to_stdout", "timeout_min")  # what LocalExecutor reads (bar setup)
 
 
 def check_parameters(target: ClusterTarget, parameters: Mapping[str, Any] | None) -> None:
     """ValueError naming `cluster_parameters` for a name the target's submitit executor does not take (submitit's
-    LocalExecutor would ignore it silently; its Slurm executor would refuse it only once the sweep started)."""
+    LocalExecutor would ignore it silently; its Slurm executor would refuse it only once the sweep started), or a
+    `setup` that is not a list of shell lines; for Slurm, also that its commands are here."""
     import submitit
 
-    if target.kind == "local":
-        allowed = set(LOCAL_PARAMETERS)
-    else:  # submitit's own list (the sbatch options it writes, and their executor-neutral aliases)
-        allowed = submitit.SlurmExecutor._valid_parameters() | set(submitit.SlurmExecutor._equivalence_dict())
+    setup = (parameters or {}).get("setup", [])
+    if not isinstance(setup, list | tuple) or not all(isinstance(line, str) for line in setup):
+        raise ValueError(f"cluster_parameters: setup must be a list of shell lines, e.g. "
+                         f"[\"module load python\"]; got {setup!r}")
+    if target.kind == "slurm" and not (shutil.which("sbatch") and shutil.which("srun")):
+        raise ValueError(f"cluster: {target.kind}:{target.partition} needs Slurm's sbatch and srun on PATH; run the "
+                         "command on a node of the cluster (a login node), or use local:N here")
+    # Slurm: submitit's own list, the sbatch options it writes.
+    allowed = set(LOCAL_PARAMETERS) if target.kind == "local" else submitit.SlurmExecutor._valid_parameters()
     for name in parameters or {}:
         if name not in allowed:
             raise ValueError(f"cluster_parameters: {name!r} is not a parameter of submitit's {target.kind} executor; "
@@ -96,42 +111,69 @@ def make_executor(target: ClusterTarget, folder: Path, devices: int,
     parameters = dict(parameters or {})
     if target.kind == "local":
         executor = submitit.LocalExecutor(folder=folder)
-        executor.update_parameters(timeout_min=7 * 24 * 60)
+        executor.update_parameters(timeout_min=7 * 24 * 60, **parameters)
+        return executor  # `worker_environment` is set around each submission instead of shell lines
     else:
         executor = submitit.SlurmExecutor(folder=folder)
         # A whole node per job: its cores run the worker's devices (and XLA's threads within each).
         executor.update_parameters(partition=target.partition, exclusive=True, nodes=1, ntasks_per_node=1,
                                    time=24 * 60, job_name="amjax-sweep")
-    # The worker splits a batch over as many devices as the driver planned for: the same per-device shapes, so
-    # the same numbers bit for bit (XLA's float rounding can depend on a shard's size). Set before the worker's
-    # Python starts: the job imports amjax, whose agents start JAX, before the job function runs. Workers also
-    # share one persistent compilation cache in `out`, so a program compiles once, not once per batch of its
-    # group or retry (a cache the user set is kept).
-    cache = shlex.quote(str(Path(folder).parent / COMPILE_CACHE))
-    setup = [f"export JAX_NUM_CPU_DEVICES={int(devices)}",
-             f"export JAX_COMPILATION_CACHE_DIR=${{JAX_COMPILATION_CACHE_DIR:-{cache}}}", *parameters.pop("setup", ())]
-    executor.update_parameters(setup=setup, **parameters)
+    exports = [f"export {name}=${{{name}:-{shlex.quote(value)}}}" if name == "JAX_COMPILATION_CACHE_DIR"
+               else f"export {name}={shlex.quote(value)}"
+               for name, value in worker_environment(Path(folder).parent, devices).items()]
+    executor.update_parameters(setup=[*exports, *parameters.pop("setup", ())], **parameters)
     return executor
 
 
+def worker_environment(out: Path, devices: int) -> dict[str, str]:
+    """What a worker's Python must find set when it starts (the job imports amjax, whose agents start JAX, before
+    the job function runs):
+    - JAX_NUM_CPU_DEVICES: as many devices as the driver planned the batches for, so the same per-device shapes
+      and the same numbers bit for bit (XLA's float rounding can depend on a shard's size);
+    - JAX_COMPILATION_CACHE_DIR: one persistent compilation cache in `out` for every worker, so a program compiles
+      once, not once per batch of its group or retry (a cache the user set is kept)."""
+    return {"JAX_NUM_CPU_DEVICES": str(int(devices)),
+            "JAX_COMPILATION_CACHE_DIR": os.environ.get("JAX_COMPILATION_CACHE_DIR", str(Path(out) / COMPILE_CACHE))}
+
+
+@contextlib.contextmanager
+def starting_workers(variables: Mapping[str, str]) -> Iterator[None]:
+    """For the block: `variables` set in os.environ (a local job's processes copy it when they start), and SIGINT
+    not ignored. A process started with SIGINT ignored, such as a background job of a shell script, passes that on
+    to its children, and submitit cancels a local job with SIGINT: its worker would never stop. A handler that does
+    nothing is reset to the default in a child, while the driver still ignores Ctrl-C as it was told to."""
+    before = {name: os.environ.get(name) for name in variables}
+    os.environ.update(variables)
+    ignored = (threading.current_thread() is threading.main_thread()
+               and signal.getsignal(signal.SIGINT) is signal.SIG_IGN)
+    if ignored:
+        signal.signal(signal.SIGINT, lambda *_: None)
+    try:
+        yield
+    finally:
+        if ignored:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
 def part_folder(out: Path, batch_name: str) -> Path:
-    return Path(out) / "parts" / batch_name
+    return Path(out) / PARTS / batch_name
 
 
 def _is_done(rescored: pd.DataFrame | None, config_ids: Sequence[str]) -> bool:
     return rescored is not None and set(config_ids) <= set(rescored.config_id)
 
 
-def _newer(path: Path, than: Path) -> bool:
-    return path.exists() and (not than.exists() or path.stat().st_mtime > than.stat().st_mtime)
-
-
 def _copy_checkpoint(out: Path, part: Path, batch_name: str, config_ids: Sequence[str]) -> None:
-    """Start a part from `out`'s checkpoint of the batch (and its rows) when that is the newer one: a sweep that
-    ran locally for a while resumes on the cluster where it stopped."""
+    """Start a part from `out`'s checkpoint of the batch (and its rows) when that is further on: a sweep that ran
+    locally for a while resumes on the cluster where it stopped."""
     source = out / "checkpoints" / f"{batch_name}.msgpack"
     target = part / "checkpoints" / f"{batch_name}.msgpack"
-    if not _newer(source, target):
+    if storage.checkpoint_evals(source) <= storage.checkpoint_evals(target):
         return
     atomic_write(target, lambda tmp: shutil.copyfile(source, tmp))
     rows = storage.read_table(out / "results")
@@ -178,24 +220,31 @@ def train_part(spec_json: dict[str, Any], out: str, batch_name: str, max_batch: 
 
 def merge_part(out: Path, batch_name: str, results: pd.DataFrame | None,
                rescored: pd.DataFrame | None) -> tuple[pd.DataFrame | None, pd.DataFrame | None, pd.DataFrame | None]:
-    """Fold the part of `batch_name` into `out` (rows keyed, never duplicated; its checkpoint and policies where
-    they are newer), then remove it. Returns results, rescored and the part's rows (None if it had none).
+    """Fold the part of `batch_name` into `out`, then remove it; returns results, rescored and the rows taken from
+    the part (None if none). A part is taken whole (rows keyed, never duplicated; checkpoint, policies, re-scores)
+    when it is ahead of `out`: finished, or checkpointed further than `out`'s checkpoint of the batch, and its
+    batch not finished in `out` already; otherwise it is dropped (a worker of a killed driver that fell behind).
     Raises FolderBusyError if a worker still holds the part."""
     part = part_folder(out, batch_name)
+    checkpoint = Path("checkpoints") / f"{batch_name}.msgpack"
     with folder_lock(part, argument=f"parts/{batch_name}"):
         rows = storage.read_table(part / "results")
-        if rows is not None:
+        part_rescored = storage.read_table(part / "rescored")
+        ahead = part_rescored is not None or (
+            storage.checkpoint_evals(part / checkpoint) > storage.checkpoint_evals(out / checkpoint))
+        if rows is None or not ahead or _is_done(rescored, rows.config_id.unique()):
+            rows = None
+        else:
             results = storage.merge_rows(results, rows)
             storage.write_table(out / "results", results)
-        part_rescored = storage.read_table(part / "rescored")
-        if part_rescored is not None:
-            rescored = storage.merge_by_config(rescored, part_rescored)
-            storage.write_table(out / "rescored", rescored)
-        for sub in ("checkpoints", "policies"):
-            for path in sorted((part / sub).glob("*.msgpack")):
-                if _newer(path, out / sub / path.name):
-                    (out / sub).mkdir(exist_ok=True)
-                    os.replace(path, out / sub / path.name)
+            if part_rescored is not None:
+                rescored = storage.merge_by_config(rescored, part_rescored)
+                storage.write_table(out / "rescored", rescored)
+            for path in [part / checkpoint, *sorted((part / "policies").glob("*.msgpack"))]:
+                if path.exists():
+                    target = out / path.relative_to(part)
+                    target.parent.mkdir(exist_ok=True)
+                    os.replace(path, target)
         shutil.rmtree(part)
     with contextlib.suppress(OSError):  # the last part: no empty parts/ left behind
         part.parent.rmdir()
@@ -206,7 +255,7 @@ def merge_parts(out: Path, results: pd.DataFrame | None,
                 rescored: pd.DataFrame | None) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
     """Fold every part that no worker holds into `out` (a cluster run that was stopped); the local runner and the
     driver call this when they open a folder."""
-    for part in sorted((Path(out) / "parts").glob("*/")):
+    for part in sorted((Path(out) / PARTS).glob("*/")):
         with contextlib.suppress(FolderBusyError):  # its worker still runs: its next job waits for it
             results, rescored, _ = merge_part(out, part.name, results, rescored)
     remove_job_pickles(out)
@@ -241,12 +290,26 @@ def drive(spec: Any, out: Path, batches: Sequence[Any], results: pd.DataFrame | 
     running: dict[str, tuple[Any, Any]] = {}
     attempts: dict[str, int] = {}
     counted: dict[str, int] = {}
+    stale_since: dict[str, float] = {}
+
+    def run_again(batch: Any, job: Any, error: Any) -> None:
+        """The job failed (or hung): its batch goes back to the queue, up to MAX_ATTEMPTS submissions."""
+        _delete_job_files(job)
+        if attempts[batch.name] >= MAX_ATTEMPTS:
+            raise ClusterError(f"cluster: batch {batch.name} failed {attempts[batch.name]} times; last error: "
+                               f"{error} (job logs in {out / LOGS})")
+        queue.insert(0, batch)
+
     try:
         while queue or running:
             while queue and len(running) < target.workers:
                 batch = queue.pop(0)
                 attempts[batch.name] = attempts.get(batch.name, 0) + 1
-                job = executor.submit(train_part, spec.to_json(), str(out), batch.name, max_batch, options)
+                try:
+                    with starting_workers(worker_environment(out, num_devices)):
+                        job = executor.submit(train_part, spec.to_json(), str(out), batch.name, max_batch, options)
+                except Exception as error:  # e.g. sbatch refused the job (partition, account, time limit)
+                    raise ClusterError(f"cluster: submitting batch {batch.name} failed: {error}") from None
                 running[batch.name] = (batch, job)
             bar.set_description(f"sweep on {target.kind}: {len(running)} batches running, {len(queue)} queued")
             time.sleep(POLL_S)
@@ -256,20 +319,26 @@ def drive(spec: Any, out: Path, batches: Sequence[Any], results: pd.DataFrame | 
                 bar.update(max(0, seen - counted.get(name, 0)) * spec.eval_every)
                 counted[name] = max(seen, counted.get(name, 0))
                 if not job.done():
+                    # Slurm may leave a preempted (not requeued) or lost job in a state submitit never calls done.
+                    if target.kind == "slurm" and job.state in ("PREEMPTED", "UNKNOWN"):
+                        if time.monotonic() - stale_since.setdefault(name, time.monotonic()) > STALE_S:
+                            job.cancel(check=False)
+                            del running[name]
+                            run_again(batch, job, f"Slurm reported the job {job.state} for {STALE_S} s")
+                    else:
+                        stale_since.pop(name, None)
                     continue
                 del running[name]
                 try:
                     info = job.result()
                 except Exception as error:  # the worker died or raised: submit the batch again
-                    _delete_job_files(job)
-                    if attempts[name] >= MAX_ATTEMPTS:
-                        raise RuntimeError(f"cluster: batch {name} failed {attempts[name]} times; last error: "
-                                           f"{error} (job logs in {out / LOGS})") from None
-                    queue.insert(0, batch)
+                    run_again(batch, job, error)
                     continue
                 try:
                     results, rescored, rows = merge_part(out, name, results, rescored)
                 except FolderBusyError:  # a worker of an earlier driver took the part after this job: wait
+                    attempts[name] -= 1  # not a failure
+                    _delete_job_files(job)
                     queue.append(batch)
                     continue
                 total_rows = len(batch.runs) * batch.runs[0].config.num_evals

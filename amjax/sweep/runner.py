@@ -28,7 +28,7 @@ from amjax.agents.saved import SavedPolicy, load_policy, save_policy
 from amjax.files import folder_lock, remove_partial_writes
 from amjax.sweep import storage
 from amjax.sweep.batches import Batch, chunk_evals, compiled_programs, plan_batches
-from amjax.sweep.cluster import check_engine, check_parameters, drive, merge_parts, parse_cluster
+from amjax.sweep.cluster import PARTS, check_engine, check_parameters, drive, merge_parts, parse_cluster
 from amjax.sweep.devices import config_sharding, sharded_jit, sweep_devices
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 from amjax.sweep.loggers import RunLogger
@@ -346,7 +346,8 @@ def run_sweep(
     except OSError as error:
         raise SweepMismatchError(f"out: cannot create the folder {out} ({error.strerror})") from None
     with folder_lock(out):  # one writer per folder; the lock dies with the process, however it dies
-        remove_partial_writes(out)  # temporary files of writes that a killed run left unfinished
+        # Temporary files of writes that a killed run left unfinished (a cluster's parts are their workers' own).
+        remove_partial_writes(out, skip=(PARTS,))
         _claim_folder(out, spec, runs, metadata or {})
         wall_time = storage.WallTime(out / "wall_time.json")
         # Parts a cluster run left (stopped before it folded them in): their rows and checkpoints, so either

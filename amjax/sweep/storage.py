@@ -105,6 +105,24 @@ def save_checkpoint(path: Path, state: Any, evals_done: int) -> None:
     atomic_write(path, lambda tmp: Path(tmp).write_bytes(serialization.msgpack_serialize(payload)))
 
 
+def checkpoint_evals(path: Path) -> int:
+    """The evaluation periods a checkpoint holds, read from its head without loading its arrays (-1 if there is
+    no readable checkpoint at `path`)."""
+    import msgpack
+
+    try:
+        with open(path, "rb") as handle:
+            unpacker = msgpack.Unpacker(handle, raw=False)
+            for _ in range(unpacker.read_map_header()):  # save_checkpoint writes evals_done first
+                key = unpacker.unpack()
+                if key == "evals_done":
+                    return int(unpacker.unpack())
+                unpacker.skip()
+    except (OSError, ValueError, msgpack.UnpackException):
+        pass
+    return -1
+
+
 def load_checkpoint(path: Path, like: Any) -> tuple[Any, int]:
     """Restore a checkpoint into the structure of `like`; raise ValueError if it does not fit."""
     try:

@@ -19,7 +19,15 @@ import pandas as pd
 import pytest
 
 from amjax.sweep import SweepSpec, run_sweep
-from amjax.sweep.cluster import ClusterTarget, check_parameters, make_executor, parse_cluster
+from amjax.sweep.cluster import (
+    ClusterTarget,
+    check_parameters,
+    make_executor,
+    merge_parts,
+    parse_cluster,
+    starting_workers,
+)
+from amjax.sweep.storage import checkpoint_evals, save_checkpoint, write_table
 
 SPEC = SweepSpec(
     envs=("CartPole-v0",),
@@ -122,28 +130,94 @@ def test_cluster_and_local_runs_resume_each_other_through_kills(tmp_path, stop_s
     assert killed[0] not in {info["pid"] for info in ran.values()}  # the second worker finished the batch
 
 
-def test_targets_and_parameters_are_checked_before_anything_is_written(tmp_path):
+@pytest.fixture
+def slurm_commands(tmp_path, monkeypatch):
+    """Stand-ins for Slurm's sbatch and srun on PATH (submitit needs srun to build a Slurm executor)."""
+    folder = tmp_path / "bin"
+    folder.mkdir()
+    for name in ("sbatch", "srun"):
+        (folder / name).write_text("#!/bin/sh\nexit 1\n")
+        (folder / name).chmod(0o755)
+    monkeypatch.setenv("PATH", f"{folder}{os.pathsep}{os.environ['PATH']}")
+
+
+def test_targets_and_parameters_are_checked_before_anything_is_written(tmp_path, monkeypatch):
     assert parse_cluster("local:3") == ClusterTarget("local", 3)
     assert parse_cluster("slurm:gpu-a100") == ClusterTarget("slurm", 64, "gpu-a100")
     assert parse_cluster("slurm:cpu:8") == ClusterTarget("slurm", 8, "cpu")
+    never = tmp_path / "never"
     for bad in ("local", "local:0", "local:-1", "slurm:", "ray:4", "slurm:cpu:0"):
         with pytest.raises(ValueError, match=f"cluster: got '{bad}'; allowed values: local:N"):
-            run_sweep(SPEC, tmp_path / "never", cluster=bad)
-    with pytest.raises(ValueError, match="'account' is not a parameter of submitit's local executor"):
-        run_sweep(SPEC, tmp_path / "never", cluster="local:2", cluster_parameters={"account": "lab"})
-    assert not (tmp_path / "never").exists()
+            run_sweep(SPEC, never, cluster=bad)
+    for parameters, message in (({"account": "lab"}, "'account' is not a parameter of submitit's local executor"),
+                                ({"setup": "module load x"}, "setup must be a list of shell lines")):
+        with pytest.raises(ValueError, match=message):
+            run_sweep(SPEC, never, cluster="local:2", cluster_parameters=parameters)
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))  # no Slurm here
+    with pytest.raises(ValueError, match="slurm:cpu needs Slurm's sbatch and srun on PATH"):
+        run_sweep(SPEC, never, cluster="slurm:cpu")
+    assert not never.exists()
+
+
+def test_slurm_jobs_take_a_whole_node_and_the_drivers_device_count(tmp_path, slurm_commands):
+    """The sbatch script submitit would send, and the names Slurm's executor takes (checked before submitting)."""
     check_parameters(ClusterTarget("slurm", 4, "cpu"), {"account": "lab", "time": 600, "mem": "64G"})
-
-
-def test_slurm_jobs_take_a_whole_node_and_all_its_cores(tmp_path, monkeypatch):
-    """The sbatch script submitit would send (submitit needs `srun` on PATH to build it: a stand-in here)."""
-    (tmp_path / "bin").mkdir()
-    (tmp_path / "bin" / "srun").write_text("#!/bin/sh\n")
-    (tmp_path / "bin" / "srun").chmod(0o755)
-    monkeypatch.setenv("PATH", f"{tmp_path / 'bin'}{os.pathsep}{os.environ['PATH']}")
+    with pytest.raises(ValueError, match="'timeout_min' is not a parameter of submitit's slurm executor"):
+        check_parameters(ClusterTarget("slurm", 4, "cpu"), {"timeout_min": 600})  # sbatch's name is `time`
     executor = make_executor(parse_cluster("slurm:cpu:8"), tmp_path / "logs", 64,
                              {"account": "lab", "setup": ["source ~/venv/bin/activate"]})
     script = executor._make_submission_file_text("python -m submitit.core._submit", "uid")
     for line in ("#SBATCH --partition=cpu", "#SBATCH --exclusive", "#SBATCH --nodes=1", "#SBATCH --account=lab",
                  "export JAX_NUM_CPU_DEVICES=64", "source ~/venv/bin/activate"):
         assert line in script, script
+
+
+@pytest.mark.parametrize("driver_sigint", ["default", "ignored"])
+def test_a_cancelled_local_job_stops_its_worker(tmp_path, driver_sigint):
+    """Ctrl-C or an error in the driver cancels its jobs: a local job's process really ends, also when the driver
+    itself ignores SIGINT (a background job of a shell script), which its children would inherit."""
+    handler = signal.SIG_IGN if driver_sigint == "ignored" else signal.default_int_handler
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        executor = make_executor(parse_cluster("local:1"), tmp_path / "logs", 1)
+        with starting_workers({}):
+            job = executor.submit(time.sleep, 120)
+        assert signal.getsignal(signal.SIGINT) is handler  # the driver's own handling is given back
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    deadline = time.monotonic() + 60
+    time.sleep(1.0)  # the job's Python is up
+    job.cancel(check=False)
+    while not job.done() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert job.done() and time.monotonic() < deadline
+
+
+def _fake_part(out: Path, batch: str, evals: int, rows: int, finished: bool) -> None:
+    part = out / "parts" / batch
+    save_checkpoint(part / "checkpoints" / f"{batch}.msgpack", {"w": np.zeros(3)}, evals)
+    table = pd.DataFrame({"config_id": ["c0"] * rows, "env_steps": np.arange(1, rows + 1) * 1024,
+                          "eval_return": np.full(rows, float(evals))})
+    write_table(part / "results", table)
+    if finished:
+        write_table(part / "rescored", pd.DataFrame({"config_id": ["c0"], "best_policy_return": [1.0]}))
+
+
+def test_a_part_is_taken_only_when_it_is_ahead(tmp_path):
+    """A part left by a killed driver's worker: folded in when it is further on than `out`'s checkpoint, dropped
+    (without touching `out`) when it fell behind or its batch has finished in `out` meanwhile."""
+    out = tmp_path / "out"
+    save_checkpoint(out / "checkpoints" / "b.msgpack", {"w": np.ones(3)}, 4)
+    _fake_part(out, "b", evals=2, rows=2, finished=False)  # behind out's checkpoint
+    results, rescored = merge_parts(out, None, None)
+    assert results is None and rescored is None and not (out / "parts").exists()
+    assert checkpoint_evals(out / "checkpoints" / "b.msgpack") == 4
+    _fake_part(out, "b", evals=6, rows=6, finished=False)  # ahead
+    results, rescored = merge_parts(out, None, None)
+    assert len(results) == 6 and rescored is None and checkpoint_evals(out / "checkpoints" / "b.msgpack") == 6
+    _fake_part(out, "b", evals=8, rows=8, finished=True)  # finished
+    results, rescored = merge_parts(out, results, None)
+    assert len(results) == 8 and list(rescored.config_id) == ["c0"]
+    _fake_part(out, "b", evals=3, rows=3, finished=True)  # a straggler of a batch finished in `out`
+    results, rescored = merge_parts(out, results, rescored)
+    assert len(results) == 8 and results.eval_return.max() == 8 and not (out / "parts").exists()
