@@ -77,8 +77,10 @@ def timed(args: argparse.Namespace, name: str, cluster: str | None) -> tuple[flo
     out = Path(args.out) / name
     command = [sys.executable, __file__, "--child", "--steps", str(args.steps), "--seeds", str(args.seeds),
                "--out", str(out)] + (["--cluster", cluster] if cluster else [])
-    line = subprocess.run(command, check=True, capture_output=True, text=True).stdout.strip().splitlines()[-1]
-    seconds = json.loads(line)["seconds"]
+    child = subprocess.run(command, capture_output=True, text=True)
+    if child.returncode != 0:
+        raise SystemExit(f"{name}: the sweep failed (exit {child.returncode}):\n{child.stderr[-4000:]}")
+    seconds = json.loads(child.stdout.strip().splitlines()[-1])["seconds"]
     print(f"{name}: {seconds:.1f} s", flush=True)
     return seconds, out
 

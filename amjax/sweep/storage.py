@@ -46,12 +46,16 @@ class UnreadableFileError(ValueError):
 
 
 def read_table(path_stem: Path) -> pd.DataFrame | None:
-    """The Parquet table `path_stem`.parquet, or None if there is none; UnreadableFileError if it is corrupt."""
+    """The Parquet table `path_stem`.parquet, or None if there is none; UnreadableFileError if it is corrupt.
+
+    Read through one open file: given a path, pyarrow may open it twice (its size, then its pages), and a writer's
+    atomic replace in between (a cluster worker's part, read by the driver for progress) gives a torn read."""
     path = path_stem.with_suffix(".parquet")
-    if not path.exists():
-        return None
     try:
-        return pd.read_parquet(path)
+        with open(path, "rb") as file:
+            return pd.read_parquet(file)
+    except FileNotFoundError:
+        return None
     except Exception as error:  # truncated or foreign: pyarrow raises several kinds
         raise UnreadableFileError(
             f"{path} is unreadable ({type(error).__name__}: {str(error)[:200]}); restore it from the CSV beside it "

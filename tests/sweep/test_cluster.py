@@ -27,7 +27,7 @@ from amjax.sweep.cluster import (
     parse_cluster,
     starting_workers,
 )
-from amjax.sweep.storage import checkpoint_evals, save_checkpoint, write_table
+from amjax.sweep.storage import checkpoint_evals, read_table, save_checkpoint, write_table
 
 SPEC = SweepSpec(
     envs=("CartPole-v0",),
@@ -221,3 +221,31 @@ def test_a_part_is_taken_only_when_it_is_ahead(tmp_path):
     _fake_part(out, "b", evals=3, rows=3, finished=True)  # a straggler of a batch finished in `out`
     results, rescored = merge_parts(out, results, rescored)
     assert len(results) == 8 and results.eval_return.max() == 8 and not (out / "parts").exists()
+
+
+def test_a_part_read_while_its_worker_replaces_it_is_never_torn(tmp_path):
+    """The driver reads each part's results for the progress bar while the worker rewrites them (atomically):
+    every read gives a whole table, the old or the new one (given a path, pyarrow opened the file twice and
+    a replace in between failed the read, and with it the sweep)."""
+    stem = tmp_path / "results"
+    stop = threading.Event()
+
+    def worker() -> None:
+        rows = 10
+        while not stop.is_set():
+            rows = rows + 37 if rows < 3000 else 10
+            write_table(stem, pd.DataFrame({"config_id": ["c0"] * rows, "env_steps": np.arange(rows),
+                                            "eval_return": np.zeros(rows)}))
+
+    writer = threading.Thread(target=worker)
+    writer.start()
+    reads, deadline = 0, time.monotonic() + 4.0
+    try:
+        while time.monotonic() < deadline:
+            table = read_table(stem)
+            assert table is None or (len(table) - 10) % 37 == 0
+            reads += 1
+    finally:
+        stop.set()
+        writer.join()
+    assert reads > 100
