@@ -5,9 +5,9 @@ as a job: a Slurm job on a whole node (`slurm:PARTITION[:JOBS]`), or a local sub
 on one machine and for the tests). A worker re-plans the sweep from its JSON spec, trains its batch into
 `out/parts/<batch>/` with the local runner's own code (results, re-scoring, checkpoints, policies, all written
 atomically) on as many JAX devices as the driver has, and the driver folds each finished part into `out/` exactly
-as a local sweep writes it. So results are the same row for row, bit for bit, whatever the number of workers, and a
-sweep may resume locally after a cluster run and vice versa (parts ahead of `out` are folded back when the folder
-is opened).
+as a local sweep writes it. So results are the same row for row (values equal to float rounding) whatever the
+number of workers, and a sweep may resume locally after a cluster run and vice versa (parts ahead of `out` are
+folded back when the folder is opened).
 
 Faults: a worker that dies (SIGKILL, a lost node) makes its job fail; the driver submits the batch again (at most
 `MAX_ATTEMPTS` times), and the new worker resumes from the part's last checkpoint. A killed driver resumes as a
@@ -113,11 +113,10 @@ def make_executor(target: ClusterTarget, folder: Path, devices: int,
         executor = submitit.LocalExecutor(folder=folder)
         executor.update_parameters(timeout_min=7 * 24 * 60, **parameters)
         return executor  # `worker_environment` is set around each submission instead of shell lines
-    else:
-        executor = submitit.SlurmExecutor(folder=folder)
-        # A whole node per job: its cores run the worker's devices (and XLA's threads within each).
-        executor.update_parameters(partition=target.partition, exclusive=True, nodes=1, ntasks_per_node=1,
-                                   time=24 * 60, job_name="amjax-sweep")
+    executor = submitit.SlurmExecutor(folder=folder)
+    # A whole node per job: its cores run the worker's devices (and XLA's threads within each).
+    executor.update_parameters(partition=target.partition, exclusive=True, nodes=1, ntasks_per_node=1,
+                               time=24 * 60, job_name="amjax-sweep")
     exports = [f"export {name}=${{{name}:-{shlex.quote(value)}}}" if name == "JAX_COMPILATION_CACHE_DIR"
                else f"export {name}={shlex.quote(value)}"
                for name, value in worker_environment(Path(folder).parent, devices).items()]
@@ -129,7 +128,7 @@ def worker_environment(out: Path, devices: int) -> dict[str, str]:
     """What a worker's Python must find set when it starts (the job imports amjax, whose agents start JAX, before
     the job function runs):
     - JAX_NUM_CPU_DEVICES: as many devices as the driver planned the batches for, so the same per-device shapes
-      and the same numbers bit for bit (XLA's float rounding can depend on a shard's size);
+      as the local run's programs (XLA's float rounding can depend on a shard's size);
     - JAX_COMPILATION_CACHE_DIR: one persistent compilation cache in `out` for every worker, so a program compiles
       once, not once per batch of its group or retry (a cache the user set is kept)."""
     return {"JAX_NUM_CPU_DEVICES": str(int(devices)),

@@ -314,8 +314,8 @@ def run_sweep(
         `WandbLogger(project, out)`); they are closed when the sweep ends or stops.
       devices: the devices each batch's configurations are split over (default: `sweep_devices()`, every local
         device: one per CPU core after `amjax.use_all_cores()`, else one). Results agree across device counts to
-        float rounding (bit for bit on the same count: XLA's rounding can depend on a shard's size); a sweep may
-        resume on another count.
+        float rounding (XLA's rounding can depend on a shard's size, so the same count keeps them closest); a
+        sweep may resume on another count.
       metadata: extra entries for a new folder's metadata.json (e.g. the budget a command line asked for before
         `round_schedule`).
       cluster: run the batches as jobs through submitit: "local:N" (N worker processes here) or
