@@ -4,14 +4,19 @@ Layers, bottom to top: `amjax.envs` (pure-JAX environments, gymnax API) -> `amja
 MDP, episode statistics, Gymnasium bridges) -> `amjax.agents` (networks and one file per algorithm) ->
 `amjax.sweep` (grids of configurations trained in one compiled program, results, resume).
 
-Importing amjax leaves JAX as it is (its names below load on first use). `amjax.use_all_cores()`, called before
-JAX starts, gives JAX one CPU device per core so that sweeps can use every core.
+Importing amjax does not start JAX (its names below load on first use); it adds one option to `XLA_FLAGS`, read
+at JAX's first compile, that compiles small loops as one kernel each (`amjax.cores.xla_cpu_options`;
+`AMJAX_XLA_OPTIONS=0` turns it off). `amjax.use_all_cores()`, called before JAX
+starts, gives JAX one CPU device per core so that sweeps can use every core.
 """
 
 from importlib import import_module as _import_module
 from importlib import metadata as _metadata
 
+from amjax import cores as _cores
 from amjax.cores import use_all_cores
+
+_cores._xla_options_late = not _cores.xla_cpu_options() and _cores.os.environ.get("AMJAX_XLA_OPTIONS") != "0"
 
 try:
     __version__ = _metadata.version("amjax-rl")  # the distribution's name; the import package is `amjax`

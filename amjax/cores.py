@@ -1,10 +1,16 @@
-"""One JAX CPU device per core, on request: ``amjax.use_all_cores()``.
+"""One JAX CPU device per core, on request: ``amjax.use_all_cores()``; small loops as one kernel, on import.
 
 A vmapped sweep in one XLA CPU program keeps only about 1.4 of 2 cores busy (many of its ops are too small to
 split), so the sweep runner spreads a batch's configurations over the CPU devices (``amjax.sweep.devices``), one
 per core. JAX makes one CPU device unless told otherwise before its backend starts (the first JAX computation,
-or importing gymnax, starts it). Importing amjax changes nothing; the ``amjax`` command, the notebooks and
+or importing gymnax, starts it). Importing amjax does not choose devices; the ``amjax`` command, the notebooks and
 programs that want every core call ``use_all_cores()`` first. Programs that do not shard run on the first device.
+
+XLA's CPU runtime runs a program kernel by kernel, a few hundred ns each, so a loop of small elementwise steps (the
+LunarLander port's 180 constraint sweeps: ~100 kernels each) costs its kernel count, not its arithmetic. XLA compiles
+a while loop into one kernel when the bytes it accesses are below ``xla_cpu_small_while_loop_byte_threshold``
+(1 KiB by default; loops with dots, convolutions, scatters or custom calls never). ``import amjax`` raises the
+threshold (``xla_cpu_options``) in ``XLA_FLAGS``, which XLA reads once, at the first compile.
 """
 
 from __future__ import annotations
@@ -19,6 +25,61 @@ import jax
 def usable_cores() -> int:
     """CPU cores this process may run on (its affinity mask where the OS has one)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+# Loops that access less than this many bytes per iteration (HloCostAnalysis) become one kernel each.
+SMALL_LOOP_BYTES = 100_000_000
+_SMALL_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
+XLA_CPU_FLAGS = f"--xla_backend_extra_options={_SMALL_LOOP_OPTION}={SMALL_LOOP_BYTES}"
+# Not set by amjax, an opt-in for processes that run LunarLander: reductions as XLA's own fused loops instead of
+# calls into the YNNPACK library (XLA's CPU default). The lander's many tiny reductions (collision: sums, minima,
+# maxima over a few points) then cost less than the calls did (+33% env-steps/s at 512 envs on one core), but
+# Dueling DQN on CartPole ran about 4% slower with it, so it is left to the user.
+REDUCE_IN_XLA_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-reduce"
+# Set by `import amjax`: True when it added the options after JAX had started (XLA will not read them).
+_xla_options_late = False
+
+
+def xla_cpu_options(environ: dict[str, str] | None = None) -> bool:
+    """Add amjax's XLA CPU option (``XLA_CPU_FLAGS``) to ``XLA_FLAGS``; returns whether it is in effect for
+    programs compiled from now on.
+
+    ``xla_cpu_small_while_loop_byte_threshold=SMALL_LOOP_BYTES`` (one of ``--xla_backend_extra_options``): XLA
+    compiles a while loop into one kernel when its body accesses fewer bytes than this (1 KiB by default).
+
+    Called by ``import amjax``. It only edits the environment: JAX reads ``XLA_FLAGS`` at its first compile, so a
+    process that compiled before importing amjax keeps XLA's default. A threshold the user set is kept, and
+    ``AMJAX_XLA_OPTIONS=0`` leaves ``XLA_FLAGS`` alone. Results equal XLA's default to float rounding; PPO and
+    Dueling DQN on CartPole train at the same speed either way.
+    """
+    environ = os.environ if environ is None else environ
+    if environ.get("AMJAX_XLA_OPTIONS", "1") == "0":
+        return False
+    given = flags = environ.get("XLA_FLAGS", "")
+    if _SMALL_LOOP_OPTION not in flags:
+        option = f"{_SMALL_LOOP_OPTION}={SMALL_LOOP_BYTES}"
+        match = re.search(r"--xla_backend_extra_options=(\S*)", flags)
+        if match:  # XLA takes one comma-separated list of extra options
+            joined = f"{match.group(0)},{option}" if match.group(1) else f"{match.group(0)}{option}"
+            flags = flags.replace(match.group(0), joined)
+        else:
+            flags = f"{flags} --xla_backend_extra_options={option}"
+    if flags == given:  # set before this process started (or by an earlier call)
+        return True
+    environ["XLA_FLAGS"] = flags.strip()
+    return not _backend_started()
+
+
+def warn_if_xla_options_late(who: str) -> None:
+    """A ``RuntimeWarning`` for ``who`` (an env that needs the options) when JAX compiled before ``import amjax``."""
+    if _xla_options_late:
+        warnings.warn(
+            f"{who} runs 1.5-10x slower in this process: JAX compiled before amjax was imported, so XLA ignores "
+            "amjax's XLA CPU option (amjax.cores.xla_cpu_options). Import amjax before running JAX code, or start "
+            f"Python with XLA_FLAGS='{XLA_CPU_FLAGS}'",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
 def _backend_started() -> bool:

@@ -6,11 +6,13 @@
 Random actions, auto-reset included in both. Gymnasium: one env in a Python loop (its C++ Box2D on one core,
 episodes cut at 1000 steps as LunarLander-v3's TimeLimit does). The port: `env.step` vmapped over the envs inside
 a jitted `lax.scan`, the envs split over the CPU devices with `jax.shard_map` (one device per core, as
-`amjax.use_all_cores()` sets up and the sweep runner uses; default `check_vma`). Also the single-env jitted `env.step`
-called from Python (the path of notebooks and the Gymnasium bridge). The port's timed run starts after a burn-in of
-`--burn-in` steps (500 by default) from the reset, so its envs are spread over their episodes (landings, contacts and
-auto-resets in the usual proportions); a window that starts at the reset times only free fall, which ran 7x
-faster at 4,096 envs. Three solver settings are timed by default:
+`amjax.use_all_cores()` sets up and the sweep runner uses; default `check_vma`). Also one env's jitted step called
+from Python, one call per step that splits the carried key (the path of notebooks and the Gymnasium bridge). The
+programs are compiled with the XLA CPU options `import amjax` sets (`amjax.cores.xla_cpu_options`: small loops as
+single kernels, reductions in XLA; run with `AMJAX_XLA_OPTIONS=0` to time XLA's defaults). The port's timed run
+starts after a burn-in of `--burn-in` steps (500 by default) from the reset, so its envs are spread over their
+episodes (landings, contacts and auto-resets in the usual proportions); a window that starts at the reset times
+only free fall, which ran 7x faster at 4,096 envs. Three solver settings are timed by default:
 Box2D's velocity sweeps in every env (the default env), ``jump_sweeps=True`` and ``exact_free_flight=True``.
 Prints a markdown table (env-steps/s, compile time, memory) and writes it to
 benchmarks/results/lunar_lander_speed_<date>.md.
@@ -114,17 +116,23 @@ def port_rate(env: LunarLander, n_envs: int, n_steps: int, devices: list, burn_i
 
 
 def single_env_rate(env: LunarLander, n_steps: int) -> float:
-    """Steps/s of one env's jitted `env.step` called from Python (random actions, auto-reset)."""
+    """Steps/s of one env's jitted step called from Python (random actions, auto-reset): one call per step that
+    splits the carried key and steps, as the Gymnasium bridge (`amjax.wrappers.gymnasium`) does."""
     params = env.default_params
-    step = jax.jit(env.step)
+
+    @jax.jit
+    def step(key, state, action):
+        key, key_step = jax.random.split(key)
+        obs, state, reward, terminated, truncated, _ = env.step(key_step, state, action, params)
+        return key, state, obs, reward, terminated | truncated
+
     key = jax.random.key(0)
     _, state = jax.jit(env.reset)(key, params)
-    jax.block_until_ready(step(key, state, 0, params))
-    actions = np.random.default_rng(0).integers(0, 4, n_steps)
-    keys = jax.random.split(key, n_steps)
+    jax.block_until_ready(step(key, state, np.int32(0)))
+    actions = np.random.default_rng(0).integers(0, 4, n_steps).astype(np.int32)
     start = time.perf_counter()
     for i in range(n_steps):
-        _, state, _, _, _, _ = step(keys[i], state, int(actions[i]), params)
+        key, state, _, _, _ = step(key, state, actions[i])
     jax.block_until_ready(state)
     return n_steps / (time.perf_counter() - start)
 
@@ -164,7 +172,8 @@ def main() -> None:
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, {len(devices)} JAX CPU devices, "
         f"jax {jax.__version__}; load average at the end {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} "
         f"(other jobs on the machine slow both systems). The port's timed runs start after {args.burn_in} "
-        "untimed steps (envs at every phase of their episodes).",
+        "untimed steps (envs at every phase of their episodes). amjax's XLA CPU options (amjax.cores.xla_cpu_options): "
+        f"{'on' if 'xla_cpu_small_while_loop' in os.environ.get('XLA_FLAGS', '') else 'off (XLA defaults)'}.",
         "",
         "| system | envs | devices | env-steps/s | vs Gymnasium | compile (s) | program memory (MiB) "
         "| peak RSS (MiB) |",
@@ -172,8 +181,8 @@ def main() -> None:
         f"| Gymnasium LunarLander-v3 (C++ Box2D), Python loop | 1 | 1 core | {gym:,.0f} | 1.0x | - | - | - |",
     ]
     for solver, single in singles.items():
-        lines.append(f"| port ({SOLVERS[solver]}), jitted `env.step` called from Python | 1 | 1 | {single:,.0f} "
-                     f"| {single / gym:.2f}x | - | - | - |")
+        lines.append(f"| port ({SOLVERS[solver]}), jitted step called from Python (key split inside) | 1 | 1 "
+                     f"| {single:,.0f} | {single / gym:.2f}x | - | - | - |")
     for r in rows:
         lines.append(
             f"| port ({SOLVERS[r['solver']]}), vmapped `env.step` in `lax.scan` | {r['envs']:,} | {r['devices']} "

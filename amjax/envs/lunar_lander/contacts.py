@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from amjax.envs.lunar_lander.collide import sin_cos
 from amjax.envs.lunar_lander.constants import (
     BAUMGARTE,
     BODY_FRICTION,
@@ -21,7 +22,7 @@ from amjax.envs.lunar_lander.constants import (
 # The solver below is written with scalars only (vectors are (x, y) tuples): under vmap every
 # operation is elementwise over the batch, which lets XLA fuse the 180-iteration loop body.
 def _body_origin(cx, cy, a, b):
-    ca, sa = jnp.cos(a), jnp.sin(a)
+    sa, ca = sin_cos(a)
     lx, ly = LOCAL_CENTER[b]
     return cx - (ca * lx - sa * ly), cy - (sa * lx + ca * ly), ca, sa
 

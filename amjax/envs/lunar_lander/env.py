@@ -11,6 +11,7 @@ import numpy as np
 from gymnax.environments import environment, spaces
 
 from amjax.batching import select_compacted
+from amjax.cores import warn_if_xla_options_late
 from amjax.envs.lunar_lander.collide import body_origins, terrain_from_heights
 from amjax.envs.lunar_lander.constants import (
     CHUNKS,
@@ -271,6 +272,7 @@ class LunarLander(environment.Environment[EnvState, EnvParams]):
                 raise ValueError(f"{name} must be True or False, got {value!r}")
         if exact_free_flight and jump_sweeps:
             raise ValueError("exact_free_flight and jump_sweeps: choose one (both replace the free-flight sweeps)")
+        warn_if_xla_options_late("LunarLander")
         self.continuous = bool(continuous)
         self.velocity_iterations = int(velocity_iterations)
         self.exact_free_flight = exact_free_flight

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from amjax.envs.lunar_lander.collide import sin_cos
 from amjax.envs.lunar_lander.constants import (
     ANGULAR_SLOP,
     INV_I,
@@ -27,8 +28,8 @@ from amjax.envs.lunar_lander.constants import (
 
 def _joint_arms(aa, ab, k):
     """World lever arms of joint k: r_A (hull origin - hull centre), r_B (anchor on the leg)."""
-    ca, sa = jnp.cos(aa), jnp.sin(aa)
-    cb, sb = jnp.cos(ab), jnp.sin(ab)
+    sa, ca = sin_cos(aa)
+    sb, cb = sin_cos(ab)
     lx, ly = -LOCAL_CENTER[0, 0], -LOCAL_CENTER[0, 1]
     bx, by = JOINT_ANCHOR_B[k]
     return ca * lx - sa * ly, sa * lx + ca * ly, cb * bx - sb * by, sb * bx + cb * by

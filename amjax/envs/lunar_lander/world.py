@@ -314,6 +314,8 @@ def world_step(
     arrays = [{name: value for name, value in con.items() if name != "b"} for con, _, _ in cons]
     operands = (tuple(bv), joints, tuple(jimp), tuple(jmot), arrays, tuple(cimp))
     gauss_seidel = partial(_gauss_seidel, bodies=bodies, iterations=velocity_iterations)
+    # Whether a leg touches the ground: the island then holds contact constraints (vcount > 0 iff pcount > 0).
+    touching_legs = jnp.any(jnp.stack([con["vcount"] > 0 for con, _, _ in cons])) if cons else False
     jump_sweeps = jump_sweeps and velocity_iterations > 2  # else nothing to jump over
     if not (exact_free_flight or jump_sweeps):
         if not cons:  # the reset step: the joints only
@@ -322,7 +324,6 @@ def world_step(
             # An island without leg contacts has no contact constraints to solve (Box2D's island holds only
             # touching contacts): those steps sweep the joints alone, with the same arithmetic; the envs with a
             # leg on the ground sweep everything, gathered into a smaller batch under vmap.
-            touching_legs = jnp.any(jnp.stack([con["vcount"] > 0 for con, _, _ in cons]))
             bv, jimp, jmot, cimp = select_compacted(
                 touching_legs, gauss_seidel, _joints_only_gauss_seidel(velocity_iterations), *operands,
                 capacities=CONTACT_CAPACITIES,
@@ -334,7 +335,7 @@ def world_step(
             _free_flight_jump, iterations=velocity_iterations, segments=JUMP_SEGMENTS)
         out, sweep = free_flight(*operands)
         if cons:
-            sweep = sweep | jnp.any(jnp.stack([con["vcount"] > 0 for con, _, _ in cons]))
+            sweep = sweep | touching_legs
         if sweep is False:  # the exact solve of a reset step: no sweeps to compile
             bv, jimp, jmot, cimp = out
         else:
@@ -366,12 +367,12 @@ def world_step(
     # -- Position iterations, stopping like Box2D once contacts and joints are within slop.
     limit_states = tuple(j["state"] for j in joints)
 
-    def pos_iter(carry, consts):
+    def pos_iter(carry, consts, con_bodies):
         i, cs, as_, _ = carry
         con_arrays, states = consts
         cs, as_ = list(cs), list(as_)
         min_sep = jnp.float32(0.0)
-        for con, b in zip(con_arrays, bodies, strict=True):
+        for con, b in zip(con_arrays, con_bodies, strict=True):
             for j in range(2):
                 cx, cy, as_[b], sep = contact_position(cs[b][0], cs[b][1], as_[b], {**con, "b": b}, j)
                 cs[b] = (cx, cy)
@@ -384,27 +385,37 @@ def world_step(
             ok = ok & jok
         return i + 1, tuple(cs), tuple(as_), ok
 
-    def iterate(carry, consts, limit):
+    def iterate(carry, consts, limit, con_bodies=()):
         return jax.lax.while_loop(
-            lambda carry: (carry[0] < limit) & ~carry[3], lambda carry: pos_iter(carry, consts), carry
+            lambda carry: (carry[0] < limit) & ~carry[3], lambda carry: pos_iter(carry, consts, con_bodies), carry
         )
 
-    consts = (arrays, limit_states)
-    carry = vary_together((jnp.int32(0), tuple(c), tuple(a), jnp.bool_(False)))
-    # Most envs are solved within a few iterations; under vmap the rest continue as a smaller batch (the while
-    # loop would otherwise run every env for as many iterations as the slowest one needs).
-    # The reset step (no contacts) runs on its own compacted batch of done envs, or on every env at once: there the
-    # loop runs plainly, which also keeps the compiled program smaller.
-    if contacts:
-        carry = iterate(carry, consts, POSITION_ITERATIONS_FOR_ALL)
-        carry = select_compacted(
+    def iterate_in_two_stages(carry, consts, con_bodies=()):
+        # Most envs are solved within a few iterations; under vmap the rest continue as a smaller batch (the while
+        # loop would otherwise run every env for as many iterations as the slowest one needs).
+        carry = iterate(carry, consts, POSITION_ITERATIONS_FOR_ALL, con_bodies)
+        return select_compacted(
             (carry[0] < POSITION_ITERATIONS) & ~carry[3],
-            lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS),
+            lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS, con_bodies),
             lambda carry, consts: carry,
             carry, consts, capacities=CONTACT_CAPACITIES,
         )
+
+    carry = vary_together((jnp.int32(0), tuple(c), tuple(a), jnp.bool_(False)))
+    if contacts:
+        # As in the velocity solve, an island without leg contacts corrects the joints alone (an inactive contact's
+        # position solve changes nothing and reports no separation); the envs with a leg on the ground run every
+        # constraint, gathered into a smaller batch under vmap.
+        carry = select_compacted(
+            touching_legs,
+            lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS, bodies),
+            lambda carry, consts: iterate_in_two_stages(carry, ((), consts[1])),
+            carry, (arrays, limit_states), capacities=CONTACT_CAPACITIES,
+        )
     else:
-        carry = iterate(carry, consts, POSITION_ITERATIONS)
+        # The reset step runs on its own compacted batch of done envs, or on every env at once: there the loop runs
+        # plainly, which also keeps the compiled program smaller.
+        carry = iterate(carry, ((), limit_states), POSITION_ITERATIONS)
     _, cs, as_, solved = carry
 
     # -- Sleep (b2Island::Solve with allowSleep).

@@ -1,0 +1,86 @@
+"""`import amjax` sets an XLA CPU option (`amjax.cores.xla_cpu_options`): the XLA_FLAGS it writes, that XLA takes it
+(the LunarLander port's loops are single kernels), the opt-out, and the warning when JAX compiled before amjax was
+imported."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+
+from amjax.cores import SMALL_LOOP_BYTES, XLA_CPU_FLAGS, xla_cpu_options
+
+LOOPS = f"xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
+
+
+def test_options_added_to_xla_flags_once_and_merged_with_the_users():
+    environ = {}
+    xla_cpu_options(environ)
+    assert environ["XLA_FLAGS"] == f"--xla_backend_extra_options={LOOPS}" == XLA_CPU_FLAGS
+    xla_cpu_options(environ)  # idempotent (a worker process inherits the driver's flags)
+    assert environ["XLA_FLAGS"] == XLA_CPU_FLAGS
+
+    environ = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2 --xla_backend_extra_options=a=1 --b=2"}
+    xla_cpu_options(environ)  # XLA takes one comma-separated list of extra options
+    expected = f"--xla_force_host_platform_device_count=2 --xla_backend_extra_options=a=1,{LOOPS} --b=2"
+    assert environ["XLA_FLAGS"] == expected
+
+    own = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=5"
+    environ = {"XLA_FLAGS": own}
+    xla_cpu_options(environ)  # the user's own threshold is kept
+    assert environ["XLA_FLAGS"] == own
+
+    environ = {"AMJAX_XLA_OPTIONS": "0"}
+    assert xla_cpu_options(environ) is False
+    assert "XLA_FLAGS" not in environ
+
+
+def test_imported_amjax_set_the_option_and_xla_compiles_a_loop_as_one_kernel():
+    assert LOOPS in os.environ.get("XLA_FLAGS", "")  # tests import amjax before JAX compiles anything
+    x = jnp.ones(4096)  # a loop over 16 KiB arrays: above XLA's 1 KiB default, kernel by kernel without the option
+    compiled = jax.jit(lambda x: jax.lax.fori_loop(0, 8, lambda i, x: jnp.sin(x) + i, x)).lower(x).compile()
+    assert "xla_cpu_small_call" in compiled.as_text()
+
+
+def test_lunar_lander_loops_are_single_kernels():
+    from amjax.envs.lunar_lander import LunarLander
+
+    env = LunarLander()
+    params = env.default_params
+    keys = jax.random.split(jax.random.PRNGKey(0), 64)
+    _, state = jax.vmap(env.reset, (0, None))(keys, params)
+    step = jax.vmap(env.step, (0, 0, 0, None))
+    text = jax.jit(step).lower(keys, state, jnp.zeros(64, jnp.int32), params).compile().as_text()
+    # The velocity sweeps (joints alone, and every constraint for the compacted envs on the ground), the position
+    # iterations, the reset's physics step: each loop one kernel.
+    assert text.count('xla_cpu_small_call="true"') >= 6
+
+
+def _python(code: str, **env: str) -> subprocess.CompletedProcess:
+    clean = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "AMJAX_XLA_OPTIONS")}
+    return subprocess.run([sys.executable, "-c", code], env={**clean, **env}, capture_output=True, text=True)
+
+
+LATE = """
+import warnings, jax, jax.numpy as jnp
+jax.jit(lambda x: x + 1)(jnp.ones(2))  # JAX compiles before amjax is imported: XLA has read its flags
+import amjax
+from amjax.envs.lunar_lander import LunarLander
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    LunarLander()
+print(len(caught), caught[0].message if caught else "")
+"""
+
+
+def test_warning_when_jax_compiled_before_amjax_was_imported():
+    done = _python(LATE)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.startswith("1 ") and "import amjax before" in done.stdout.lower()
+    # Not with the options set from the start, nor when the user turned them off.
+    quiet = _python(LATE, XLA_FLAGS=XLA_CPU_FLAGS)
+    off = _python(LATE, AMJAX_XLA_OPTIONS="0")
+    assert quiet.stdout.startswith("0") and off.stdout.startswith("0"), (quiet.stderr[-2000:], off.stderr[-2000:])
