@@ -390,13 +390,13 @@ def world_step(
             lambda carry: (carry[0] < limit) & ~carry[3], lambda carry: pos_iter(carry, consts, con_bodies), carry
         )
 
-    def iterate_in_two_stages(carry, consts, con_bodies=()):
+    def joints_in_two_stages(carry, consts):
         # Most envs are solved within a few iterations; under vmap the rest continue as a smaller batch (the while
         # loop would otherwise run every env for as many iterations as the slowest one needs).
-        carry = iterate(carry, consts, POSITION_ITERATIONS_FOR_ALL, con_bodies)
+        carry = iterate(carry, consts, POSITION_ITERATIONS_FOR_ALL)
         return select_compacted(
             (carry[0] < POSITION_ITERATIONS) & ~carry[3],
-            lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS, con_bodies),
+            lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS),
             lambda carry, consts: carry,
             carry, consts, capacities=CONTACT_CAPACITIES,
         )
@@ -409,7 +409,7 @@ def world_step(
         carry = select_compacted(
             touching_legs,
             lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS, bodies),
-            lambda carry, consts: iterate_in_two_stages(carry, ((), consts[1])),
+            lambda carry, consts: joints_in_two_stages(carry, ((), consts[1])),
             carry, (arrays, limit_states), capacities=CONTACT_CAPACITIES,
         )
     else:
