@@ -13,10 +13,10 @@ starts, gives JAX one CPU device per core so that sweeps can use every core.
 from importlib import import_module as _import_module
 from importlib import metadata as _metadata
 
-from amjax import cores as _cores
 from amjax.cores import use_all_cores
+from amjax.cores import xla_cpu_options as _xla_cpu_options
 
-_cores._xla_options_late = not _cores.xla_cpu_options() and _cores.os.environ.get("AMJAX_XLA_OPTIONS") != "0"
+_xla_cpu_options()
 
 try:
     __version__ = _metadata.version("amjax-rl")  # the distribution's name; the import package is `amjax`

@@ -36,7 +36,7 @@ XLA_CPU_FLAGS = f"--xla_backend_extra_options={_SMALL_LOOP_OPTION}={SMALL_LOOP_B
 # maxima over a few points) then cost less than the calls did (+33% env-steps/s at 512 envs on one core), but
 # Dueling DQN on CartPole ran about 4% slower with it, so it is left to the user.
 REDUCE_IN_XLA_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-reduce"
-# Set by `import amjax`: True when it added the options after JAX had started (XLA will not read them).
+# True once `xla_cpu_options` added the option to this process's XLA_FLAGS after JAX had started (XLA ignores it).
 _xla_options_late = False
 
 
@@ -67,7 +67,11 @@ def xla_cpu_options(environ: dict[str, str] | None = None) -> bool:
     if flags == given:  # set before this process started (or by an earlier call)
         return True
     environ["XLA_FLAGS"] = flags.strip()
-    return not _backend_started()
+    late = _backend_started()
+    if environ is os.environ:
+        global _xla_options_late
+        _xla_options_late = late
+    return not late
 
 
 def warn_if_xla_options_late(who: str) -> None:
