@@ -6,7 +6,7 @@ member. The functions here are ``custom_vmap`` rules that keep the work proporti
 - ``uniform_cond``: a branch that computes only the branches some member takes (both, then a select, only where
   members disagree), at every level of nested ``vmap``;
 - ``select_compacted``: per member ``expensive`` where a predicate holds and ``cheap`` elsewhere, running
-  ``expensive`` only on the members that need it, gathered into a smaller batch;
+  ``expensive`` only on the members that need it, gathered in chunks of a smaller batch;
 - ``in_groups``: a batch run in cache-sized groups instead of all at once.
 
 The functions passed in must be pure functions of their operands (pass traced values as operands, do not close
@@ -92,49 +92,44 @@ def select_compacted(
     expensive: Callable,
     cheap: Callable,
     *operands: Any,
-    capacities: Sequence[float] = (1 / 16, 1 / 4),
+    capacity: float = 1 / 16,
 ) -> Any:
     """``expensive(*operands)`` where ``pred`` holds, else ``cheap(*operands)``; under ``vmap``, ``expensive`` runs
     only on the members that need it.
 
     Unbatched this is ``lax.cond``. Under ``vmap`` (any nesting, all levels flattened into one batch of N members)
-    ``cheap`` runs on every member; the members whose ``pred`` holds are gathered into a batch of the smallest
-    capacity ``ceil(c * N)`` (c in ``capacities``) that holds them, ``expensive`` runs on that batch and its results
-    are scattered back. When more members need it than the largest capacity, ``expensive`` runs on all N and a
-    select picks per member; when none do, it does not run. Each capacity compiles its own copy of ``expensive``.
+    ``cheap`` runs on every member; the members whose ``pred`` holds are gathered in chunks of ``ceil(capacity *
+    N)`` rows, ``expensive`` runs on one chunk per iteration of a loop (as many iterations as the members need,
+    none when no member does) and its results are scattered back. ``expensive`` is compiled once, at the chunk
+    size, whatever the number of members that take it.
     """
-
-    batched = _compacted_rows(expensive, cheap, tuple(capacities))
+    if not 0 < capacity <= 1:
+        raise ValueError(f"capacity must be in (0, 1], got {capacity!r}")
+    batched = _compacted_rows(expensive, cheap, capacity)
     return _cond_with_vmap_rule(expensive, cheap, batched)(pred, *operands)
 
 
-def _compacted_rows(expensive: Callable, cheap: Callable, capacities: tuple[float, ...]) -> Callable:
+def _compacted_rows(expensive: Callable, cheap: Callable, capacity: float) -> Callable:
     """``select_compacted`` over the leading axis of its operands; further ``vmap`` levels are flattened into it."""
 
     @jax.custom_batching.custom_vmap
     def rows(pred, *operands):
         n = pred.shape[0]
         cheap_out = jax.vmap(cheap)(*operands)
-        sizes = sorted({math.ceil(c * n) for c in capacities if 0 < math.ceil(c * n) < n})
-
-        def compact(size):
-            def run(operands):
-                # Indices of the members that take `expensive`, padded with n: padded rows gather the last member
-                # (their results are discarded) and their scatter is dropped.
-                index = jnp.nonzero(pred, size=size, fill_value=n)[0]
-                taken = jax.tree.map(lambda x: jnp.take(x, index, axis=0, mode="clip"), operands)
-                result = jax.vmap(expensive)(*taken)
-                return jax.tree.map(lambda c, r: c.at[index].set(r, mode="drop"), cheap_out, result)
-
-            return run
-
-        def every(operands):
-            return _select(pred, jax.vmap(expensive)(*operands), cheap_out)
-
-        branches = [lambda _: cheap_out, *(compact(s) for s in sizes), every]
+        chunk = min(math.ceil(capacity * n), n)
+        chunks = -(-n // chunk)
+        # Indices of the members that take `expensive`, in order, padded with n to whole chunks: padded rows
+        # gather the last member (their results are discarded) and their scatter is dropped.
+        index = jnp.nonzero(pred, size=chunks * chunk, fill_value=n)[0]
         count = jnp.sum(pred.astype(jnp.int32))
-        which = (count > 0).astype(jnp.int32) + sum((count > s).astype(jnp.int32) for s in sizes)
-        return jax.lax.switch(which, branches, operands)
+
+        def run_chunk(i, out):
+            rows_index = jax.lax.dynamic_slice_in_dim(index, i * chunk, chunk)
+            taken = jax.tree.map(lambda x: jnp.take(x, rows_index, axis=0, mode="clip"), operands)
+            result = jax.vmap(expensive)(*taken)
+            return jax.tree.map(lambda o, r: o.at[rows_index].set(r, mode="drop"), out, result)
+
+        return jax.lax.fori_loop(0, (count + chunk - 1) // chunk, run_chunk, cheap_out)
 
     @rows.def_vmap
     def rule(axis_size, in_batched, pred, *operands):

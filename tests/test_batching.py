@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -30,7 +31,7 @@ def compacted(pred, x, y):
 
 @jax.jit
 def compacted_nested(pred, x, y):
-    inner = jax.vmap(lambda p, a, b: select_compacted(p, expensive, cheap, a, b, capacities=(0.25,)))
+    inner = jax.vmap(lambda p, a, b: select_compacted(p, expensive, cheap, a, b, capacity=0.25))
     return jax.vmap(inner, in_axes=(0, 0, None))(pred, x, y)
 
 
@@ -42,7 +43,7 @@ def branched(pred, x, y):
 @settings(max_examples=40, deadline=None)
 @given(mask=st.lists(st.booleans(), min_size=32, max_size=32), seed=st.integers(0, 2**31 - 1))
 def test_select_compacted_equals_a_select(mask, seed):
-    """Whatever the number of members that take `expensive` (none, within a capacity, more than all capacities)."""
+    """Whatever the number of members that take `expensive` (none, within one chunk, many chunks, all)."""
     pred = jnp.array(mask)
     x, y = jax.random.normal(jax.random.PRNGKey(seed), (2, 32))
     got = compacted(pred, x, y)
@@ -70,12 +71,17 @@ def test_select_compacted_unbatched_is_a_cond():
         jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), got, reference(pred, x, y))
 
 
-def test_select_compacted_runs_expensive_on_a_smaller_batch():
-    """The compiled program holds `expensive` at the capacities' batch sizes (2 and 8 of 32), not only at 32."""
+def test_select_compacted_runs_expensive_once_on_a_smaller_batch():
+    """The compiled program holds `expensive` once, at the chunk size (2 of 32: capacity 1/16), not at 32."""
     text = compacted.lower(jnp.zeros(32, bool), jnp.zeros(32), jnp.zeros(32)).as_text()
     sines = [line for line in text.splitlines() if "stablehlo.sine" in line]
-    for size in (2, 8, 32):
-        assert any(f"tensor<{size}xf32>" in line for line in sines), size
+    assert len(sines) == 1 and "tensor<2xf32>" in sines[0], sines
+
+
+@pytest.mark.parametrize("capacity", [0.0, -0.5, 1.5])
+def test_select_compacted_rejects_a_capacity_outside_0_1(capacity):
+    with pytest.raises(ValueError, match="capacity must be in"):
+        select_compacted(jnp.bool_(True), expensive, cheap, jnp.float32(1), jnp.float32(2), capacity=capacity)
 
 
 @settings(max_examples=30, deadline=None)

@@ -24,6 +24,7 @@ from amjax.envs.lunar_lander.constants import (
     POLYGON_RADIUS,
     W,
 )
+from amjax.envs.lunar_lander.fusion import materialized
 
 # --- small vector helpers (Box2D b2Math) ------------------------------------------------------
 # sin and cos in float32 from multiplies and adds only, so that XLA vectorises them inside the solver's loops (its
@@ -38,7 +39,11 @@ _COS = tuple(np.float32(x) for x in (2.443315711809948e-5, -1.388731625493765e-3
 
 def sin_cos(a: jax.Array) -> tuple[jax.Array, jax.Array]:
     """(sin a, cos a) of float32 ``a`` (Box2D's b2Rot::Set)."""
-    a = jnp.asarray(a, jnp.float32)
+    # Materialised: each consumer kernel reads the pair instead of recomputing the polynomial.
+    return materialized(_sin_cos_polynomial, jnp.asarray(a, jnp.float32))
+
+
+def _sin_cos_polynomial(a: jax.Array) -> tuple[jax.Array, jax.Array]:
     q = jnp.round(a * _TWO_OVER_PI)
     y = ((a - q * _PIO2[0]) - q * _PIO2[1]) - q * _PIO2[2]
     z = y * y

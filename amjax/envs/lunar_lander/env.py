@@ -37,11 +37,12 @@ from amjax.envs.lunar_lander.constants import (
     H,
     W,
 )
+from amjax.envs.lunar_lander.fusion import vary_together
 from amjax.envs.lunar_lander.state import EnvParams, EnvState
-from amjax.envs.lunar_lander.world import vary_together, world_step
+from amjax.envs.lunar_lander.world import world_step
 
-# Under vmap, the envs that finished an episode are reset as a batch of this fraction of the envs (random actions end
-# about 1% of episodes per step); when more are done, every env computes a reset.
+# Under vmap, the envs that finished an episode are reset in chunks of this fraction of the envs (random actions end
+# about 1% of episodes per step).
 RESET_CAPACITY = 1 / 32
 
 
@@ -301,8 +302,8 @@ class LunarLander(environment.Environment[EnvState, EnvParams]):
         """gymnax's ``Environment.step`` (same keys, same outputs) with a cheaper auto-reset.
 
         gymnax computes a reset (terrain and Gymnasium's reset physics step) on every step and selects it where
-        an episode ended; here a vmapped batch computes resets only for the members that are done, gathered into a
-        batch of ``RESET_CAPACITY`` of the envs (``select_compacted``; all envs when more are done).
+        an episode ended; here a vmapped batch computes resets only for the members that are done, gathered in
+        chunks of ``RESET_CAPACITY`` of the envs (``select_compacted``).
         """
         params = self.default_params if params is None else params
         key_step, key_reset = jax.random.split(key)
@@ -314,7 +315,7 @@ class LunarLander(environment.Environment[EnvState, EnvParams]):
             lambda key, params, _: self.reset_env(key, params),
             lambda key, params, stepped: stepped,
             key_reset, params, (obs_st, state_st),
-            capacities=(RESET_CAPACITY,),
+            capacity=RESET_CAPACITY,
         )
         info = {**info, "terminated": terminated, "truncated": truncated, "final_observation": obs_st}
         return obs, state, reward, terminated, truncated, info

@@ -30,54 +30,20 @@ from amjax.envs.lunar_lander.constants import (
     VELOCITY_ITERATIONS,
 )
 from amjax.envs.lunar_lander.contacts import contact_constraint, contact_position, contact_velocity
+from amjax.envs.lunar_lander.fusion import materialized, vary_together
 from amjax.envs.lunar_lander.joints import joint_constraint, joint_position, joint_velocity, solve_joints_exact
 from amjax.envs.lunar_lander.state import EnvState
 
-# Under vmap, the envs that sweep (with exact_free_flight or jump_sweeps) and the envs that need more than
-# POSITION_ITERATIONS_FOR_ALL position iterations are gathered into a batch of the smallest of these fractions of the
-# envs that holds them (random actions touch the ground on ~5% of env-steps once episodes are at every phase);
-# when more envs need it, every env runs it.
-CONTACT_CAPACITIES = (1 / 16, 1 / 4)
+# Under vmap, the envs with a leg on the ground (and, with exact_free_flight or jump_sweeps, the envs that sweep) and
+# the envs that need more than POSITION_ITERATIONS_FOR_ALL position iterations are gathered in chunks of this fraction
+# of the envs (random actions touch the ground on ~5% of env-steps once episodes are at every phase).
+CONTACT_CAPACITY = 1 / 16
 # Position iterations every env runs before, under vmap, the unsolved ones continue as a compacted batch (each env
 # runs Box2D's iterations either way).
 POSITION_ITERATIONS_FOR_ALL = 4
 # Runs of sweeps with one clamp pattern that `_jumped_sweeps` may take per step; where more are needed the step is
 # swept instead.
 JUMP_SEGMENTS = 2
-
-
-def _materialized(it: jax.Array, fn: Callable, *operands: Any) -> Any:
-    """``fn(*operands)`` with its outputs computed once, not re-derived inside each consumer kernel.
-
-    XLA's CPU fusion duplicates elementwise producers into their consumers. Compiled plainly, one velocity
-    iteration became 46 kernels that each recomputed most of the Gauss-Seidel chain before it (5,474 fused
-    operations per env). A conditional is a fusion boundary, so each solve runs behind ``lax.cond(it >= 0, ...)``
-    on the (unbatched) loop counter, a branch that is always taken and stays a branch under vmap: the same
-    arithmetic, 2.5x faster at 1,024 envs.
-    """
-
-    def never(*ops):
-        # Zeros shaped like fn's outputs, computed from the operands so that under shard_map they vary over
-        # the same manual axes as fn's outputs (the branches' types must agree).
-        zero = sum(0 * leaf.astype(jnp.float32) for leaf in jax.tree.leaves(ops))
-        return jax.tree.map(lambda s: jnp.broadcast_to(zero, s.shape).astype(s.dtype), jax.eval_shape(fn, *ops))
-
-    return jax.lax.cond(it >= 0, fn, never, *operands)
-
-
-def vary_together(tree: Any) -> Any:
-    """``tree`` with every leaf varying over ``shard_map``'s manual axes as much as any leaf does (adds zeros).
-
-    A loop carry or branch output that starts from constants (a fresh reset's zero impulses) but meets varying
-    values fails ``jax.shard_map``'s default ``check_vma=True``; outside ``shard_map`` XLA folds the zeros away.
-    """
-    zero = sum(jnp.sum(0 * jnp.asarray(leaf, jnp.float32)) for leaf in jax.tree.leaves(tree))
-
-    def vary(x):
-        x = jnp.asarray(x)
-        return x | (zero != 0) if x.dtype == jnp.bool_ else x + zero.astype(x.dtype)
-
-    return jax.tree.map(vary, tree)
 
 
 def _warm_start(bv, joints, jimp, jmot, arrays, cimp, *, bodies):
@@ -103,9 +69,8 @@ def _warm_start(bv, joints, jimp, jmot, arrays, cimp, *, bodies):
     return tuple(bv)
 
 
-def _sweep(bv, joints, jimp, jmot, arrays, cimp, patterns=None, *, bodies, it):
-    """One velocity iteration: the joints, then the contacts (b2Island::Solve order), each solve
-    ``_materialized`` on the unbatched counter ``it``.
+def _sweep(bv, joints, jimp, jmot, arrays, cimp, patterns=None, *, bodies):
+    """One velocity iteration: the joints, then the contacts (b2Island::Solve order), each solve ``materialized``.
 
     Returns velocities, impulses and the joints' clamp patterns; with ``patterns`` given, the joints take those
     branches (without contacts the iteration is then affine in velocities and impulses).
@@ -113,13 +78,13 @@ def _sweep(bv, joints, jimp, jmot, arrays, cimp, patterns=None, *, bodies, it):
     bv, jimp, jmot, cimp = list(bv), list(jimp), list(jmot), list(cimp)
     seen = [None, None]
     for k in JOINT_ORDER:
-        bv[0], bv[k + 1], jimp[k], jmot[k], seen[k] = _materialized(
-            it, lambda *ops, k=k: joint_velocity(*ops[:3], k, *ops[3:]),
+        bv[0], bv[k + 1], jimp[k], jmot[k], seen[k] = materialized(
+            lambda *ops, k=k: joint_velocity(*ops[:3], k, *ops[3:]),
             bv[0], bv[k + 1], joints[k], jimp[k], jmot[k], None if patterns is None else patterns[k],
         )
     for idx, (con, b) in enumerate(zip(arrays, bodies, strict=True)):
-        bv[b], *new = _materialized(
-            it, lambda v, con, *imp, b=b: contact_velocity(v, {**con, "b": b}, *imp),
+        bv[b], *new = materialized(
+            lambda v, con, *imp, b=b: contact_velocity(v, {**con, "b": b}, *imp),
             bv[b], con, *cimp[idx],
         )
         cimp[idx] = tuple(new)
@@ -130,9 +95,9 @@ def _gauss_seidel(bv, joints, jimp, jmot, arrays, cimp, *, bodies, iterations):
     """Box2D's velocity solve: warm start, then ``iterations`` sweeps. Returns velocities and impulses."""
     bv = _warm_start(bv, joints, jimp, jmot, arrays, cimp, bodies=bodies)
 
-    def body(it, carry):
+    def body(_, carry):
         bv, jimp, jmot, cimp = carry
-        return _sweep(bv, joints, jimp, jmot, arrays, cimp, bodies=bodies, it=it)[:4]
+        return _sweep(bv, joints, jimp, jmot, arrays, cimp, bodies=bodies)[:4]
 
     carry = vary_together((bv, tuple(jimp), tuple(jmot), tuple(cimp)))
     return jax.lax.fori_loop(0, iterations, body, carry)
@@ -167,8 +132,7 @@ def _jumped_sweeps(bv, joints, jimp, jmot, *, iterations, segments):
     ``iterations - 1`` sweeps; the last one runs as Box2D runs it. Returns velocities, impulses and whether the
     segments covered every sweep (where not, the caller sweeps instead).
     """
-    # An opaque zero: the solves stay behind always-taken conditionals (`_materialized`) outside a loop too.
-    solve = partial(_sweep, joints=joints, arrays=(), cimp=(), bodies=(), it=jax.lax.optimization_barrier(0))
+    solve = partial(_sweep, joints=joints, arrays=(), cimp=(), bodies=())
 
     def velocities(imp):
         return _warm_start(bv, joints, *imp, (), (), bodies=())
@@ -326,7 +290,7 @@ def world_step(
             # leg on the ground sweep everything, gathered into a smaller batch under vmap.
             bv, jimp, jmot, cimp = select_compacted(
                 touching_legs, gauss_seidel, _joints_only_gauss_seidel(velocity_iterations), *operands,
-                capacities=CONTACT_CAPACITIES,
+                capacity=CONTACT_CAPACITY,
             )
     else:
         # A step without leg contacts takes the joints' fixed point or the jumped sweeps; the rest (a leg on the
@@ -341,7 +305,7 @@ def world_step(
         else:
             bv, jimp, jmot, cimp = select_compacted(
                 sweep, lambda *ops: gauss_seidel(*ops[:-1]), lambda *ops: ops[-1], *operands, out,
-                capacities=CONTACT_CAPACITIES,
+                capacity=CONTACT_CAPACITY,
             )
 
     # -- Store impulses per (body, edge); points beyond the solved count keep their values.
@@ -371,16 +335,20 @@ def world_step(
         i, cs, as_, _ = carry
         con_arrays, states = consts
         cs, as_ = list(cs), list(as_)
+        # Each solve materialised, as in the velocity sweeps.
         min_sep = jnp.float32(0.0)
         for con, b in zip(con_arrays, con_bodies, strict=True):
             for j in range(2):
-                cx, cy, as_[b], sep = contact_position(cs[b][0], cs[b][1], as_[b], {**con, "b": b}, j)
+                cx, cy, as_[b], sep = materialized(
+                    lambda cx, cy, a, con, b=b, j=j: contact_position(cx, cy, a, {**con, "b": b}, j),
+                    cs[b][0], cs[b][1], as_[b], con,
+                )
                 cs[b] = (cx, cy)
                 min_sep = jnp.minimum(min_sep, sep)
         ok = min_sep >= -3.0 * LINEAR_SLOP
         for k in JOINT_ORDER:
-            cs[0], as_[0], cs[k + 1], as_[k + 1], jok = joint_position(
-                cs[0], as_[0], cs[k + 1], as_[k + 1], states[k], k
+            cs[0], as_[0], cs[k + 1], as_[k + 1], jok = materialized(
+                lambda *ops, k=k: joint_position(*ops, k), cs[0], as_[0], cs[k + 1], as_[k + 1], states[k]
             )
             ok = ok & jok
         return i + 1, tuple(cs), tuple(as_), ok
@@ -398,7 +366,7 @@ def world_step(
             (carry[0] < POSITION_ITERATIONS) & ~carry[3],
             lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS),
             lambda carry, consts: carry,
-            carry, consts, capacities=CONTACT_CAPACITIES,
+            carry, consts, capacity=CONTACT_CAPACITY,
         )
 
     carry = vary_together((jnp.int32(0), tuple(c), tuple(a), jnp.bool_(False)))
@@ -410,7 +378,7 @@ def world_step(
             touching_legs,
             lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS, bodies),
             lambda carry, consts: joints_in_two_stages(carry, ((), consts[1])),
-            carry, (arrays, limit_states), capacities=CONTACT_CAPACITIES,
+            carry, (arrays, limit_states), capacity=CONTACT_CAPACITY,
         )
     else:
         # The reset step runs on its own compacted batch of done envs, or on every env at once: there the loop runs
