@@ -93,35 +93,43 @@ def select_compacted(
     cheap: Callable,
     *operands: Any,
     capacity: float = 1 / 16,
+    min_chunk: int = 16,
 ) -> Any:
     """``expensive(*operands)`` where ``pred`` holds, else ``cheap(*operands)``; under ``vmap``, ``expensive`` runs
     only on the members that need it.
 
     Unbatched this is ``lax.cond``. Under ``vmap`` (any nesting, all levels flattened into one batch of N members)
-    ``cheap`` runs on every member; the members whose ``pred`` holds are gathered in chunks of ``ceil(capacity *
-    N)`` rows, ``expensive`` runs on one chunk per iteration of a loop (as many iterations as the members need,
-    none when no member does) and its results are scattered back. ``expensive`` is compiled once, at the chunk
-    size, whatever the number of members that take it.
+    ``cheap`` runs on every member; the members whose ``pred`` holds are gathered in chunks of ``max(ceil(capacity
+    * N), min_chunk)`` rows, ``expensive`` runs on one chunk per iteration of a loop (as many iterations as the
+    members need, none when no member does) and its results are scattered back. ``expensive`` is compiled once,
+    at the chunk size, whatever the number of members that take it. A chunk of N or more rows runs ``expensive``
+    on every member (when any needs it) and selects.
     """
     if not 0 < capacity <= 1:
         raise ValueError(f"capacity must be in (0, 1], got {capacity!r}")
-    batched = _compacted_rows(expensive, cheap, capacity)
+    if isinstance(min_chunk, bool) or not isinstance(min_chunk, int) or min_chunk < 1:
+        raise ValueError(f"min_chunk must be an int >= 1, got {min_chunk!r}")
+    batched = _compacted_rows(expensive, cheap, capacity, min_chunk)
     return _cond_with_vmap_rule(expensive, cheap, batched)(pred, *operands)
 
 
-def _compacted_rows(expensive: Callable, cheap: Callable, capacity: float) -> Callable:
+def _compacted_rows(expensive: Callable, cheap: Callable, capacity: float, min_chunk: int) -> Callable:
     """``select_compacted`` over the leading axis of its operands; further ``vmap`` levels are flattened into it."""
 
     @jax.custom_batching.custom_vmap
     def rows(pred, *operands):
         n = pred.shape[0]
         cheap_out = jax.vmap(cheap)(*operands)
-        chunk = min(math.ceil(capacity * n), n)
+        count = jnp.sum(pred.astype(jnp.int32))
+        chunk = max(math.ceil(capacity * n), min_chunk)
+        if chunk >= n:
+            return jax.lax.cond(
+                count > 0, lambda: _select(pred, jax.vmap(expensive)(*operands), cheap_out), lambda: cheap_out
+            )
         chunks = -(-n // chunk)
         # Indices of the members that take `expensive`, in order, padded with n to whole chunks: padded rows
         # gather the last member (their results are discarded) and their scatter is dropped.
         index = jnp.nonzero(pred, size=chunks * chunk, fill_value=n)[0]
-        count = jnp.sum(pred.astype(jnp.int32))
 
         def run_chunk(i, out):
             rows_index = jax.lax.dynamic_slice_in_dim(index, i * chunk, chunk)

@@ -14,7 +14,9 @@ starts after a burn-in of `--burn-in` steps (500 by default) from the reset, so 
 episodes (landings, contacts and auto-resets in the usual proportions); a window that starts at the reset times
 only free fall, which ran 7x faster at 4,096 envs. Three solver settings are timed by default:
 Box2D's velocity sweeps in every env (the default env), ``jump_sweeps=True`` and ``exact_free_flight=True``.
-Prints a markdown table (env-steps/s, compile time, memory) and writes it to
+Also timed: 1,024 envs driven by Gymnasium's heuristic controller (`--heuristic-envs`: landers that touch down and
+rest, legs on the ground on about 29% of env-steps, the costly contact path), and the compile of one vmapped
+`env.step` at 1,024 envs. Prints a markdown table (env-steps/s, compile time, memory) and writes it to
 benchmarks/results/lunar_lander_speed_<date>.md.
 """
 
@@ -38,6 +40,7 @@ import amjax
 amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
 
 from amjax.envs.lunar_lander import LunarLander  # noqa: E402
+from amjax.envs.lunar_lander.env import heuristic_action  # noqa: E402
 from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
@@ -59,15 +62,19 @@ def gymnasium_rate(n_steps: int, seed: int = 0) -> float:
     return n_steps / (time.perf_counter() - start)
 
 
-def port_rollout(env: LunarLander, n_steps: int):
-    """(state, keys) -> state: `n_steps` vmapped random-action steps of every env in `state`."""
+def port_rollout(env: LunarLander, n_steps: int, policy: str = "random"):
+    """(state, keys) -> state: `n_steps` vmapped steps of every env in `state`, with random actions or Gymnasium's
+    heuristic controller (`policy="heuristic"`: landings, legs on the ground on about 29% of env-steps)."""
     params = env.default_params
 
     def rollout(state, key):
         def body(state, key):
-            actions = jax.vmap(lambda k: env.action_space(params).sample(k))(
-                jax.vmap(jax.random.fold_in, (0, None))(key, 1)
-            )
+            if policy == "heuristic":
+                actions = jax.vmap(lambda s: heuristic_action(env.get_obs(s)))(state)
+            else:
+                actions = jax.vmap(lambda k: env.action_space(params).sample(k))(
+                    jax.vmap(jax.random.fold_in, (0, None))(key, 1)
+                )
             _, state, _, _, _, _ = jax.vmap(env.step, (0, 0, 0, None))(key, state, actions, params)
             return state, None
 
@@ -77,13 +84,15 @@ def port_rollout(env: LunarLander, n_steps: int):
     return rollout
 
 
-def port_rate(env: LunarLander, n_envs: int, n_steps: int, devices: list, burn_in: int) -> dict[str, float]:
+def port_rate(
+    env: LunarLander, n_envs: int, n_steps: int, devices: list, burn_in: int, policy: str = "random"
+) -> dict[str, float]:
     """Env-steps/s, compile seconds and program memory of `n_envs` envs split over `devices`, timed over
     `n_steps` steps after at least `burn_in` untimed ones."""
     params = env.default_params
     keys = jax.random.split(jax.random.key(0), n_envs)
     _, state = jax.jit(jax.vmap(env.reset, (0, None)))(keys, params)
-    rollout = port_rollout(env, n_steps)
+    rollout = port_rollout(env, n_steps, policy)
     if len(devices) > 1 and n_envs % len(devices) == 0:
         mesh = Mesh(np.array(devices), ("envs",))
         spec = PartitionSpec("envs")
@@ -107,12 +116,25 @@ def port_rate(env: LunarLander, n_envs: int, n_steps: int, devices: list, burn_i
     seconds = time.perf_counter() - start
     return {
         "envs": n_envs,
+        "policy": policy,
         "devices": used,
         "rate": n_envs * n_steps / seconds,
         "compile_s": compile_s,
         "program_mib": program_bytes / 2**20,
         "rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
+
+
+def step_compile_seconds(env: LunarLander, n_envs: int) -> float:
+    """Seconds from a fresh `jax.jit(jax.vmap(env.step))` to its compiled program (trace, lowering, XLA compile):
+    the first call's cost."""
+    params = env.default_params
+    keys = jax.random.split(jax.random.key(0), n_envs)
+    _, state = jax.jit(jax.vmap(env.reset, (0, None)))(keys, params)
+    actions = np.zeros(n_envs, np.int32)
+    start = time.perf_counter()
+    jax.jit(jax.vmap(env.step, (0, 0, 0, None))).lower(keys, state, actions, params).compile()
+    return time.perf_counter() - start
 
 
 def single_env_rate(env: LunarLander, n_steps: int) -> float:
@@ -147,6 +169,10 @@ def main() -> None:
     parser.add_argument("--gymnasium-steps", type=int, default=20_000)
     parser.add_argument("--single-env-steps", type=int, default=2_000)
     parser.add_argument("--burn-in", type=int, default=500, help="untimed steps before a timed port run")
+    parser.add_argument("--heuristic-envs", type=int, nargs="*", default=[1024],
+                        help="env counts also timed under Gymnasium's heuristic controller (long contact phases)")
+    parser.add_argument("--step-compiles", type=int, default=3,
+                        help="fresh compiles of one vmapped step at 1,024 envs to time (the issue's compile figure)")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--solvers", nargs="+", choices=SOLVERS, default=list(SOLVERS),
                         help="the port's settings to time: Box2D's sweeps everywhere (the default env), "
@@ -155,15 +181,20 @@ def main() -> None:
 
     devices = jax.devices()
     gym = gymnasium_rate(args.gymnasium_steps)
-    singles, rows = {}, []
+    singles, step_compiles, rows = {}, {}, []
     for solver in args.solvers:
         env = LunarLander(exact_free_flight=solver == "exact_free_flight", jump_sweeps=solver == "jump_sweeps")
         singles[solver] = single_env_rate(env, args.single_env_steps)
-        for n in args.envs:
+        step_compiles[solver] = [step_compile_seconds(env, 1024) for _ in range(args.step_compiles)]
+        print(f"{solver}: one vmapped step at 1,024 envs compiles in "
+              f"{', '.join(f'{t:.1f}' for t in step_compiles[solver])} s", flush=True)
+        runs = [(n, "random") for n in args.envs] + [(n, "heuristic") for n in args.heuristic_envs]
+        for n, policy in runs:
             n_steps = int(np.clip(args.steps_per_run // n, 100, 2000))
-            row = {**port_rate(env, n, n_steps, devices, args.burn_in), "solver": solver}
+            row = {**port_rate(env, n, n_steps, devices, args.burn_in, policy), "solver": solver}
             rows.append(row)
-            print(f"{solver}, {n} envs: {row['rate']:,.0f} env-steps/s, compile {row['compile_s']:.1f} s", flush=True)
+            print(f"{solver}, {policy}, {n} envs: {row['rate']:,.0f} env-steps/s, compile {row['compile_s']:.1f} s",
+                  flush=True)
 
     load = os.getloadavg()
     lines = [
@@ -184,11 +215,17 @@ def main() -> None:
         lines.append(f"| port ({SOLVERS[solver]}), jitted step called from Python (key split inside) | 1 | 1 "
                      f"| {single:,.0f} | {single / gym:.2f}x | - | - | - |")
     for r in rows:
+        actions = "" if r["policy"] == "random" else ", Gymnasium's heuristic controller"
         lines.append(
-            f"| port ({SOLVERS[r['solver']]}), vmapped `env.step` in `lax.scan` | {r['envs']:,} | {r['devices']} "
+            f"| port ({SOLVERS[r['solver']]}), vmapped `env.step` in `lax.scan`{actions} | {r['envs']:,} "
+            f"| {r['devices']} "
             f"| {r['rate']:,.0f} | "
             f"{r['rate'] / gym:.1f}x | {r['compile_s']:.1f} | {r['program_mib']:.1f} | {r['rss_mib']:,.0f} |"
         )
+    lines += ["", "Compile of one vmapped `env.step` at 1,024 envs (`jax.jit(jax.vmap(env.step))` traced, lowered and "
+              "compiled, fresh each time; the compile column above is the whole scanned rollout under `shard_map`):"]
+    for solver, times in step_compiles.items():
+        lines.append(f"- {SOLVERS[solver]}: {', '.join(f'{t:.1f}' for t in times)} s")
     table = "\n".join(lines) + "\n"
     save_table(table, args.out, "lunar_lander_speed")
 

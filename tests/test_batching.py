@@ -26,6 +26,13 @@ def reference(pred, x, y):
 
 @jax.jit
 def compacted(pred, x, y):
+    # Chunks of 2 rows out of 32: up to 16 iterations.
+    return jax.vmap(lambda p, a, b: select_compacted(p, expensive, cheap, a, b, min_chunk=1))(pred, x, y)
+
+
+@jax.jit
+def compacted_small_batch(pred, x, y):
+    # 8 members, chunks of min_chunk=16 rows: `expensive` runs on every member (when any needs it), then a select.
     return jax.vmap(lambda p, a, b: select_compacted(p, expensive, cheap, a, b))(pred, x, y)
 
 
@@ -52,9 +59,19 @@ def test_select_compacted_equals_a_select(mask, seed):
 
 
 @settings(max_examples=20, deadline=None)
+@given(mask=st.lists(st.booleans(), min_size=8, max_size=8), seed=st.integers(0, 2**31 - 1))
+def test_select_compacted_batch_within_one_chunk_equals_a_select(mask, seed):
+    pred = jnp.array(mask)
+    x, y = jax.random.normal(jax.random.PRNGKey(seed), (2, 8))
+    got = compacted_small_batch(pred, x, y)
+    jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), got, jax.vmap(reference)(pred, x, y))
+
+
+@settings(max_examples=20, deadline=None)
 @given(count=st.integers(0, 24), seed=st.integers(0, 2**31 - 1))
 def test_select_compacted_nested_vmap_and_unbatched_operand(count, seed):
-    """Two vmap levels flattened into one batch; an operand unbatched at the outer level is broadcast."""
+    """Two vmap levels flattened into one batch (24 members, chunks of 16); an operand unbatched at the outer
+    level is broadcast."""
     key = jax.random.PRNGKey(seed)
     pred = (jnp.arange(24) < count)[jax.random.permutation(key, 24)].reshape(4, 6)
     x = jax.random.normal(key, (4, 6))
@@ -78,10 +95,14 @@ def test_select_compacted_runs_expensive_once_on_a_smaller_batch():
     assert len(sines) == 1 and "tensor<2xf32>" in sines[0], sines
 
 
-@pytest.mark.parametrize("capacity", [0.0, -0.5, 1.5])
-def test_select_compacted_rejects_a_capacity_outside_0_1(capacity):
-    with pytest.raises(ValueError, match="capacity must be in"):
-        select_compacted(jnp.bool_(True), expensive, cheap, jnp.float32(1), jnp.float32(2), capacity=capacity)
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [({"capacity": 0.0}, "capacity must be in"), ({"capacity": 1.5}, "capacity must be in"),
+     ({"min_chunk": 0}, "min_chunk must be an int"), ({"min_chunk": 2.0}, "min_chunk must be an int")],
+)
+def test_select_compacted_rejects_bad_chunk_settings(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        select_compacted(jnp.bool_(True), expensive, cheap, jnp.float32(1), jnp.float32(2), **kwargs)
 
 
 @settings(max_examples=30, deadline=None)
