@@ -47,24 +47,17 @@ def branched(pred, x, y):
     return jax.vmap(jax.vmap(lambda p, a, b: uniform_cond(p, expensive, cheap, a, b)))(pred, x, y)
 
 
-@settings(max_examples=40, deadline=None)
-@given(mask=st.lists(st.booleans(), min_size=32, max_size=32), seed=st.integers(0, 2**31 - 1))
-def test_select_compacted_equals_a_select(mask, seed):
+@pytest.mark.parametrize(("program", "size"), [(compacted, 32), (compacted_small_batch, 8)],
+                         ids=["32 members in chunks of 2", "8 members within one chunk"])
+@settings(max_examples=30, deadline=None)
+@given(data=st.data(), seed=st.integers(0, 2**31 - 1))
+def test_select_compacted_equals_a_select(program, size, data, seed):
     """Whatever the number of members that take `expensive` (none, within one chunk, many chunks, all)."""
-    pred = jnp.array(mask)
-    x, y = jax.random.normal(jax.random.PRNGKey(seed), (2, 32))
-    got = compacted(pred, x, y)
+    pred = jnp.array(data.draw(st.lists(st.booleans(), min_size=size, max_size=size)))
+    x, y = jax.random.normal(jax.random.PRNGKey(seed), (2, size))
+    got = program(pred, x, y)
     want = jax.vmap(reference)(pred, x, y)
     jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), got, want)
-
-
-@settings(max_examples=20, deadline=None)
-@given(mask=st.lists(st.booleans(), min_size=8, max_size=8), seed=st.integers(0, 2**31 - 1))
-def test_select_compacted_batch_within_one_chunk_equals_a_select(mask, seed):
-    pred = jnp.array(mask)
-    x, y = jax.random.normal(jax.random.PRNGKey(seed), (2, 8))
-    got = compacted_small_batch(pred, x, y)
-    jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), got, jax.vmap(reference)(pred, x, y))
 
 
 @settings(max_examples=20, deadline=None)
