@@ -381,8 +381,8 @@ def world_step(
             carry, (arrays, limit_states), capacity=CONTACT_CAPACITY,
         )
     else:
-        # The reset step runs on its own compacted batch of done envs, or on every env at once: there the loop runs
-        # plainly, which also keeps the compiled program smaller.
+        # The reset step already runs on chunks of the done envs (the auto-reset's select_compacted): there the
+        # loop runs plainly, which also keeps the compiled program smaller.
         carry = iterate(carry, ((), limit_states), POSITION_ITERATIONS)
     _, cs, as_, solved = carry
 
