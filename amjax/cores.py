@@ -31,10 +31,15 @@ def usable_cores() -> int:
 SMALL_LOOP_BYTES = 100_000_000
 _SMALL_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 XLA_CPU_FLAGS = f"--xla_backend_extra_options={_SMALL_LOOP_OPTION}={SMALL_LOOP_BYTES}"
-# Not set by amjax, an opt-in for processes that run LunarLander: reductions as XLA's own fused loops instead of
-# calls into the YNNPACK library (XLA's CPU default). The lander's many tiny reductions (collision: sums, minima,
-# maxima over a few points) then cost less than the calls did (+33% env-steps/s at 512 envs on one core), but
-# Dueling DQN on CartPole ran about 4% slower with it, so it is left to the user.
+# Opt-in, for programs that step the LunarLander port in large batches: reductions as XLA's own fused loops instead
+# of calls into the YNNPACK library (XLA's CPU default). From a few hundred envs per core XLA sends the port's tiny
+# reductions (collision: sums, minima, maxima over a few points) to YNNPACK, and each call costs more than the sum:
+# 512 envs on one core ran 134 k -> 200 k env-steps/s with it (2026-11-25, a 2-core Intel Xeon); at 80 envs XLA
+# makes no such calls and nothing changes. Not a default: the agents' own reductions gain from YNNPACK (PPO's
+# minibatch steps ran 12% slower without it), so a trainer's program, which holds both, does not take it.
+# Per program: `jax.jit(f, compiler_options=REDUCTIONS_IN_XLA)` (the list of YNNPACK fusion kinds reduced to the
+# individual dots, which is XLA's default minus reductions); process-wide: `XLA_FLAGS=REDUCE_IN_XLA_FLAG`.
+REDUCTIONS_IN_XLA: dict[str, str] = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"}
 REDUCE_IN_XLA_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-reduce"
 # True once `xla_cpu_options` added the option to this process's XLA_FLAGS after JAX had started (XLA ignores it).
 _xla_options_late = False

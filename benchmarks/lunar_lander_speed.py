@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import itertools
 import os
 import platform
 import resource
@@ -39,6 +40,7 @@ import amjax
 
 amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
 
+from amjax.cores import REDUCTIONS_IN_XLA  # noqa: E402
 from amjax.envs.lunar_lander import LunarLander  # noqa: E402
 from amjax.envs.lunar_lander.env import heuristic_action  # noqa: E402
 from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander  # noqa: E402
@@ -85,7 +87,8 @@ def port_rollout(env: LunarLander, n_steps: int, policy: str = "random"):
 
 
 def port_rate(
-    env: LunarLander, n_envs: int, n_steps: int, devices: list, burn_in: int, policy: str = "random"
+    env: LunarLander, n_envs: int, n_steps: int, devices: list, burn_in: int, policy: str = "random",
+    compiler_options: dict[str, str] | None = None,
 ) -> dict[str, float]:
     """Env-steps/s, compile seconds and program memory of `n_envs` envs split over `devices`, timed over
     `n_steps` steps after at least `burn_in` untimed ones."""
@@ -102,7 +105,7 @@ def port_rate(
         used = 1
     step_keys = jax.random.split(jax.random.key(1), n_envs)
     start = time.perf_counter()
-    compiled = jax.jit(rollout).lower(state, step_keys).compile()
+    compiled = jax.jit(rollout, compiler_options=compiler_options).lower(state, step_keys).compile()
     compile_s = time.perf_counter() - start
     memory = compiled.memory_analysis()
     program_bytes = sum(
@@ -117,6 +120,7 @@ def port_rate(
     return {
         "envs": n_envs,
         "policy": policy,
+        "options": bool(compiler_options),
         "devices": used,
         "rate": n_envs * n_steps / seconds,
         "compile_s": compile_s,
@@ -173,6 +177,8 @@ def main() -> None:
                         help="env counts also timed under Gymnasium's heuristic controller (long contact phases)")
     parser.add_argument("--step-compiles", type=int, default=3,
                         help="fresh compiles of one vmapped step at 1,024 envs to time (the issue's compile figure)")
+    parser.add_argument("--reductions-in-xla", action="store_true",
+                        help="also time every batch compiled with amjax.cores.REDUCTIONS_IN_XLA (opt-in option)")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--solvers", nargs="+", choices=SOLVERS, default=list(SOLVERS),
                         help="the port's settings to time: Box2D's sweeps everywhere (the default env), "
@@ -189,12 +195,13 @@ def main() -> None:
         print(f"{solver}: one vmapped step at 1,024 envs compiles in "
               f"{', '.join(f'{t:.1f}' for t in step_compiles[solver])} s", flush=True)
         runs = [(n, "random") for n in args.envs] + [(n, "heuristic") for n in args.heuristic_envs]
-        for n, policy in runs:
+        options = [None, REDUCTIONS_IN_XLA] if args.reductions_in_xla else [None]
+        for (n, policy), compiler_options in itertools.product(runs, options):
             n_steps = int(np.clip(args.steps_per_run // n, 100, 2000))
-            row = {**port_rate(env, n, n_steps, devices, args.burn_in, policy), "solver": solver}
+            row = {**port_rate(env, n, n_steps, devices, args.burn_in, policy, compiler_options), "solver": solver}
             rows.append(row)
-            print(f"{solver}, {policy}, {n} envs: {row['rate']:,.0f} env-steps/s, compile {row['compile_s']:.1f} s",
-                  flush=True)
+            print(f"{solver}, {policy}, {n} envs{', REDUCTIONS_IN_XLA' if compiler_options else ''}: "
+                  f"{row['rate']:,.0f} env-steps/s, compile {row['compile_s']:.1f} s", flush=True)
 
     load = os.getloadavg()
     lines = [
@@ -216,6 +223,7 @@ def main() -> None:
                      f"| {single:,.0f} | {single / gym:.2f}x | - | - | - |")
     for r in rows:
         actions = "" if r["policy"] == "random" else ", Gymnasium's heuristic controller"
+        actions += ", compiled with `amjax.cores.REDUCTIONS_IN_XLA`" if r["options"] else ""
         lines.append(
             f"| port ({SOLVERS[r['solver']]}), vmapped `env.step` in `lax.scan`{actions} | {r['envs']:,} "
             f"| {r['devices']} "

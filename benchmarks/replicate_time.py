@@ -16,6 +16,7 @@ Check the method against a measured run: `python -m train replicate --env CartPo
 
     python benchmarks/replicate_time.py                                   # every env x agent (~15 min on 2 cores)
     python benchmarks/replicate_time.py --env Acrobot-v1 --agent drqn
+    python benchmarks/replicate_time.py --env LunarLander-v3 --agent ppo --seeds 3 --devices 1   # 3 seeds, one core
 """
 
 from __future__ import annotations
@@ -82,10 +83,9 @@ def _evaluation(algo, config, state):
     return evaluate_greedy(algo, config, algo.setup(config), algo.params(state.algo), key, config.eval_episodes).length
 
 
-def probe(env: str, agent: str, seeds: int, probe_steps: int) -> list[dict[str, float]]:
+def probe(env: str, agent: str, seeds: int, probe_steps: int, devices: list) -> list[dict[str, float]]:
     """`probe_batch` for every batch (active-measure, vanilla) the replicate command trains for (env, agent)."""
     spec = replicate_specs((env,), (agent,), seeds)[env]
-    devices = sweep_devices()
     return [probe_batch(batch, spec.total_timesteps, probe_steps, devices)
             for batch in plan_batches(expand(spec), 1024, len(devices))]
 
@@ -96,17 +96,22 @@ def main() -> None:
     parser.add_argument("--agent", nargs="+", default=list(REPLICATE_AGENTS), metavar="AGENT")
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--probe-steps", type=int, default=8192, help="env steps per probe period (per config)")
+    parser.add_argument("--devices", type=int, help="spread each batch over this many CPU devices (default: all)")
     args = parser.parse_args()
+    devices = sweep_devices()
+    if args.devices is not None and not 1 <= args.devices <= len(devices):
+        parser.error(f"--devices: {args.devices}; allowed values: 1 to {len(devices)}")
+    devices = devices[: args.devices or len(devices)]
     unknown = [env for env in args.env if env not in REPLICATE_BUDGETS]
     if unknown:
         parser.error(f"--env: {', '.join(unknown)}; allowed values: {', '.join(REPLICATE_BUDGETS)}")
-    print(f"{len(sweep_devices())} CPU devices; probe: 2 periods of about {args.probe_steps:,} steps per config")
+    print(f"{len(devices)} CPU devices; probe: 2 periods of about {args.probe_steps:,} steps per config")
     print(f"{'env':<16}{'agent':<7}{'configs':>8}{'compile s':>11}{'train steps/s':>15}{'eval s':>8}"
           f"{'eval len':>9}{'env steps':>14}{'projected':>11}")
     total = 0.0
     for env in args.env:
         for agent in args.agent:
-            for r in probe(env, agent, args.seeds, args.probe_steps):
+            for r in probe(env, agent, args.seeds, args.probe_steps, devices):
                 total += r["projected_s"]
                 print(f"{env:<16}{agent:<7}{r['configs']:>8}{r['compile_s']:>11.1f}{r['steps_per_s'] / 1e3:>14.1f}k"
                       f"{r['eval_s']:>8.2f}{r['eval_length']:>9.0f}{r['steps']:>14,}{r['projected_s'] / 60:>9.1f} m",

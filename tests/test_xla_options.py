@@ -1,17 +1,21 @@
 """`import amjax` sets an XLA CPU option (`amjax.cores.xla_cpu_options`): the XLA_FLAGS it writes, that XLA takes it
 (the LunarLander port's loops are single kernels), the opt-out, and the warning when JAX compiled before amjax was
-imported."""
+imported. The opt-in per-program option `amjax.cores.REDUCTIONS_IN_XLA`: XLA takes it and it changes only where
+reductions run."""
 
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+import pytest
 
-from amjax.cores import SMALL_LOOP_BYTES, XLA_CPU_FLAGS, xla_cpu_options
+from amjax.cores import REDUCTIONS_IN_XLA, SMALL_LOOP_BYTES, XLA_CPU_FLAGS, xla_cpu_options
 
 LOOPS = f"xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
 
@@ -84,3 +88,24 @@ def test_warning_when_jax_compiled_before_amjax_was_imported():
     quiet = _python(LATE, XLA_FLAGS=XLA_CPU_FLAGS)
     off = _python(LATE, AMJAX_XLA_OPTIONS="0")
     assert quiet.stdout.startswith("0") and off.stdout.startswith("0"), (quiet.stderr[-2000:], off.stderr[-2000:])
+
+
+def _library_calls(compiled) -> int:
+    return len(re.findall(r"^\s*(?:ROOT )?%ynn_fusion[\w.]* = ", compiled.as_text(), re.M))
+
+
+def test_reductions_in_xla_keeps_dots_in_the_library_and_reductions_out_of_it():
+    x = jax.random.normal(jax.random.key(0), (4096, 8))
+    w = jax.random.normal(jax.random.key(1), (8, 8))
+
+    def f(x, w):
+        return jnp.sum(x * x, axis=1), jnp.max(x, axis=1), x @ w
+
+    default = jax.jit(f).lower(x, w).compile()
+    opted = jax.jit(f, compiler_options=REDUCTIONS_IN_XLA).lower(x, w).compile()
+    if _library_calls(default) == 0:
+        pytest.skip("XLA makes no YNNPACK calls on this CPU")
+    # XLA's default sends the two reductions (and the dot) to YNNPACK; with the option the reductions stay in XLA.
+    assert _library_calls(opted) == _library_calls(default) - 2
+    for a, b in zip(default(x, w), opted(x, w), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
