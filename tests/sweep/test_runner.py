@@ -324,6 +324,9 @@ def test_cli_sweep_starts_each_env_from_its_tuned_defaults():
     assert configs["CartPole-v0", "ppo"].reward_scale == 1.0
     assert (configs["Acrobot-v1", "dqn"].hidden, configs["Acrobot-v1", "dqn"].n_step) == ((128, 128), 3)  # ACROBOT_DQN
     assert configs["Acrobot-v1", "ppo"].hidden == (128, 128) and configs["CartPole-v0", "ppo"].hidden == (64, 64)
+    acrobot_ppo, cartpole_ppo = configs["Acrobot-v1", "ppo"], configs["CartPole-v0", "ppo"]
+    assert (acrobot_ppo.update_epochs, acrobot_ppo.num_minibatches) == (10, 8)  # ACROBOT_PPO, runs 8-9
+    assert (cartpole_ppo.update_epochs, cartpole_ppo.num_minibatches) == (4, 4)
     assert (configs["CartPole-v0", "dqn"].hidden, configs["CartPole-v0", "dqn"].n_step) == ((64, 64), 10)
     args = build_parser().parse_args(["sweep", "--env", "Acrobot-v1", "--agent", "ppo", "--no-env-defaults",
                                       "--out", "x"])
