@@ -54,6 +54,8 @@ def main() -> None:
     algo = ALGORITHMS["dqn"]
     spec = replicate_specs((args.env,), ("dqn",))[args.env]
     configs = [run.config for run in expand(spec) if not run.config.vanilla][: args.configs]
+    if configs[0].learning_starts == 0:
+        raise SystemExit("learning_starts is 0: no update of this batch skips the gradient step")
     stacked = stack_configs(configs)
     keys = jnp.stack([jax.random.PRNGKey(i) for i in range(len(configs))])
     state = jax.jit(jax.vmap(lambda c, k: algo.init(c, algo.setup(c), k)))(stacked, keys)
