@@ -21,8 +21,13 @@ pre-reset next observation from the carry after step t (no reset), so truncated 
 the values never mix episodes. n-step returns (`q_learning.n_step_transitions`) stop at an episode's end and at the
 sequence's end, and use double-Q targets (`q_learning.td_targets`) from a target network.
 
-The learner is the cost (a GRU unroll of burn_in + seq_len steps for the online and the target network per sampled
-sequence); the runs behind the defaults and the speed measurements are in docs/recurrent.md.
+Cached target values: the target network changes only at its updates (every `target_update_interval` env steps),
+and a stored sequence never changes, so its target bootstrap Q-values are computed once (when it is stored) and
+recomputed for the whole buffer at each target update, not on every sample: the same targets, with one target
+unroll per stored sequence and target update instead of one per sampled sequence.
+
+The learner is the cost (a GRU unroll of burn_in + seq_len steps per sampled sequence, with its gradient); the
+runs behind the defaults and the speed measurements are in docs/recurrent.md.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ from amjax.agents.q_learning import (
     learn_or_wait,
     make_optimizer,
     n_step_transitions,
+    target_sync,
     td_targets,
     transition_arrays,
     update_target,
@@ -51,6 +57,7 @@ from amjax.agents.replay import ReplayBuffer, sequence_add, sequence_init, seque
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, FinishedEpisodes, UpdateStats, make_train
+from amjax.batching import uniform_cond
 from amjax.validation import check_choice, check_positive_int
 
 
@@ -94,12 +101,16 @@ class DRQNConfig(QLearningConfig):
             )
 
 
+# Stored sequences whose target values one batched unroll recomputes at a target update (bounds its memory).
+REFRESH_CHUNK = 256
+
+
 @struct.dataclass
 class DRQNState:
     params: Any
     target_params: Any
     opt_state: Any
-    buffer: ReplayBuffer
+    buffer: ReplayBuffer  # per sequence: "steps", and "start": {"carry": the actor's hidden state, "target_q"}
     envs: EnvBatch
     carry: Any  # the hidden state of every training env
     pending: dict[str, Any]  # the last burn_in + seq_len - train_freq steps per env (with their hidden states)
@@ -144,11 +155,14 @@ def init(config: DRQNConfig, setup: Setup, key: jax.Array) -> DRQNState:
     obs = envs.obs[0]
     one_step = {"obs": obs, "action": jnp.int32(0), "reward": jnp.float32(0), "next_obs": obs,
                 "terminated": jnp.float32(0), "done": jnp.float32(0), "first": jnp.bool_(False)}
+    num_actions = env.action_space(env_params).n
+    one_start = {"carry": jax.tree.map(lambda c: c[0], carry),
+                 "target_q": jnp.zeros((config.seq_len, num_actions), jnp.float32)}
     return DRQNState(
         params=params,
         target_params=params,
         opt_state=make_optimizer(config).init(params),
-        buffer=sequence_init(one_step, jax.tree.map(lambda c: c[0], carry), config.sequence_length, config.buffer_size),
+        buffer=sequence_init(one_step, one_start, config.sequence_length, config.buffer_size),
         envs=envs,
         carry=carry,
         pending={"steps": _steps(transitions, first), "carry": carries},
@@ -171,9 +185,8 @@ def _burn_in(config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dic
     """The hidden state after the burn-in steps (no gradient); `start` if there are none."""
     if not config.burn_in:
         return start
-    carries, _ = net.apply(
-        params, start, steps["obs"][: config.burn_in], steps["first"][: config.burn_in], method="unroll"
-    )
+    carries, _ = net.apply(jax.lax.stop_gradient(params), start, steps["obs"][: config.burn_in],
+                           steps["first"][: config.burn_in], method="unroll")
     return jax.lax.stop_gradient(jax.tree.map(lambda c: c[-1], carries))
 
 
@@ -210,26 +223,39 @@ def sequence_targets(
     return items["reward"] + items["discount"] * items["next_obs"][..., 0]
 
 
-def loss(
-    config: DRQNConfig, net: RecurrentQNetwork, params: Any, target_params: Any, steps: dict[str, jax.Array],
-    start: Any,
+def target_values(
+    config: DRQNConfig, net: RecurrentQNetwork, target_params: Any, steps: dict[str, jax.Array], start: Any
 ) -> jax.Array:
-    """Mean Huber TD error over the trained steps of a batch of sequences.
+    """The target network's bootstrap Q-values [seq_len, batch, A] of a batch of stored sequences (`q_values`)."""
+    return q_values(config, net, target_params, steps, start)[1]
 
-    The online and target networks' burn-ins (neither takes a gradient) run as one vmapped unroll over the two
-    parameter sets."""
-    both = jax.tree.map(lambda p, t: jnp.stack([jax.lax.stop_gradient(p), t]), params, target_params)
-    online_carry, target_carry = _unstack(jax.vmap(lambda p: _burn_in(config, net, p, steps, start))(both))
-    q, q_next_online = _trained_q_values(config, net, params, steps, online_carry)
-    _, q_next_target = _trained_q_values(config, net, target_params, steps, target_carry)
+
+def loss(
+    config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], start: Any,
+    q_next_target: jax.Array,
+) -> jax.Array:
+    """Mean Huber TD error over the trained steps of a batch of sequences, given the target network's bootstrap
+    Q-values (`target_values`; cached in the buffer)."""
+    q, q_next_online = q_values(config, net, params, steps, start)
     targets = sequence_targets(config, steps, q_next_online, q_next_target)
     action = steps["action"][config.burn_in :]
     q_taken = jnp.take_along_axis(q, action[..., None], -1)[..., 0]
     return optax.huber_loss(q_taken, jax.lax.stop_gradient(targets)).mean()
 
 
-def _unstack(tree: Any) -> tuple[Any, Any]:
-    return jax.tree.map(lambda x: x[0], tree), jax.tree.map(lambda x: x[1], tree)
+def refresh_target_values(config: DRQNConfig, net: RecurrentQNetwork, target_params: Any,
+                          buffer: ReplayBuffer) -> ReplayBuffer:
+    """Every stored sequence's cached target values recomputed with `target_params` (after a target update), in
+    chunks of `REFRESH_CHUNK` sequences. Unfilled slots get values too; they are never sampled."""
+
+    def one(item):  # one stored sequence (batch-major storage): a batch of 1, time-major
+        steps = jax.tree.map(lambda x: x[:, None], item["steps"])
+        start = jax.tree.map(lambda c: c[None], item["start"]["carry"])
+        return target_values(config, net, target_params, steps, start)[:, 0]
+
+    storage = buffer.storage
+    target_q = jax.lax.map(one, storage, batch_size=min(REFRESH_CHUNK, buffer.capacity))
+    return buffer.replace(storage={**storage, "start": {**storage["start"], "target_q": target_q}})
 
 
 def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNState, UpdateStats]:
@@ -243,19 +269,22 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
     window, pending = sequence_windows(
         state.pending, {"steps": _steps(transitions, first), "carry": carries}, config.train_freq
     )
-    buffer = sequence_add(state.buffer, window["steps"], jax.tree.map(lambda c: c[0], window["carry"]))
+    start = jax.tree.map(lambda c: c[0], window["carry"])
+    target_q = target_values(config, setup.network, state.target_params, window["steps"], start)
+    buffer = sequence_add(state.buffer, window["steps"], {"carry": start, "target_q": jnp.swapaxes(target_q, 0, 1)})
     env_steps = state.env_steps + config.steps_per_update()
 
     # 2. Gradient steps on sampled sequences, once learning has started (traced values are operands: see
     #    `batching.uniform_cond`).
-    def learn(params, opt_state, config, target_params, buffer, key_data):
+    def learn(params, opt_state, config, buffer, key_data):
         optimizer = make_optimizer(config)
 
         def gradient_step(carry, key):
             params, opt_state = carry
             steps, start = sequence_sample(buffer, key, config.batch_size)
-            value, grads = jax.value_and_grad(loss, argnums=2)(config, setup.network, params, target_params, steps,
-                                                                start)
+            q_next_target = jnp.swapaxes(start["target_q"], 0, 1)
+            value, grads = jax.value_and_grad(loss, argnums=2)(config, setup.network, params, steps, start["carry"],
+                                                                q_next_target)
             updates, opt_state = optimizer.update(grads, opt_state, params)
             return (optax.apply_updates(params, updates), opt_state), value
 
@@ -266,11 +295,19 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
 
     learning = env_steps >= config.learning_starts
     params, opt_state, mean_loss = learn_or_wait(
-        learning, learn, state.params, state.opt_state, config, state.target_params, buffer, key_bits(learn_key)
+        learning, learn, state.params, state.opt_state, config, buffer, key_bits(learn_key)
     )
 
-    # 3. Target network: blend with rate tau each time target_update_interval env steps pass.
+    # 3. Target network: blend with rate tau each time target_update_interval env steps pass; then the buffer's
+    #    cached target values follow it.
     target_params = update_target(config, learning, state.env_steps, env_steps, params, state.target_params)
+    buffer = uniform_cond(
+        target_sync(config, learning, state.env_steps, env_steps),
+        lambda target_params, buffer: refresh_target_values(config, setup.network, target_params, buffer),
+        lambda target_params, buffer: buffer,
+        target_params,
+        buffer,
+    )
 
     new_state = DRQNState(params, target_params, opt_state, buffer, envs, carry, pending, key_bits(key), env_steps)
     return new_state, UpdateStats(mean_loss, FinishedEpisodes.of(transitions))
@@ -291,6 +328,6 @@ DRQN = Algorithm("drqn", DRQNConfig, network, init, update, greedy, params=lambd
 train = make_train(DRQN)
 
 __all__ = [
-    "DRQN", "DRQNConfig", "DRQNState", "greedy", "init", "loss", "network", "q_values", "sequence_targets", "train",
-    "update",
+    "DRQN", "DRQNConfig", "DRQNState", "greedy", "init", "loss", "network", "q_values", "refresh_target_values",
+    "sequence_targets", "target_values", "train", "update",
 ]

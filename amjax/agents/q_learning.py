@@ -164,16 +164,22 @@ def learn_or_wait(learning: jax.Array, learn: Any, *operands: Any) -> tuple[Any,
     return uniform_cond(learning, learn, wait, *operands)
 
 
+def target_sync(
+    config: QLearningConfig, learning: jax.Array, env_steps: jax.Array, new_env_steps: jax.Array
+) -> jax.Array:
+    """Whether the target network changes in the update from `env_steps` to `new_env_steps` (`update_target`)."""
+    interval = config.target_update_interval
+    return learning & (new_env_steps // interval != env_steps // interval)
+
+
 def update_target(
     config: QLearningConfig, learning: jax.Array, env_steps: jax.Array, new_env_steps: jax.Array, params: Any,
     target_params: Any,
 ) -> Any:
     """The target network, blended with rate tau each time `target_update_interval` env steps have passed (from
     `env_steps` to `new_env_steps`) once learning has started."""
-    interval = config.target_update_interval
-    sync = learning & (new_env_steps // interval != env_steps // interval)
     return uniform_cond(
-        sync,
+        target_sync(config, learning, env_steps, new_env_steps),
         lambda tau, params, target: optax.incremental_update(params, target, tau),
         lambda tau, params, target: target,
         config.tau,

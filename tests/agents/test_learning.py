@@ -65,15 +65,19 @@ def ppo_preset(env_id: str) -> dict[str, object]:
 
 @pytest.mark.slow
 def test_ppo_keeps_measuring_on_acrobot_under_cost():
-    """The collapse this catches: PPO's training episodes measuring on ~2% of steps and lasting all 500 steps."""
+    """The collapse this catches: PPO's training episodes measuring on ~2-7% of steps and lasting all 500 steps, by
+    40k steps. With the old defaults (unscaled rewards) it fails on every seed tried; with Acrobot's preset but a
+    clipped critic, 3 of these 12 seeds collapse (measured 0.06 / 0.07 / 0.04 in steps 20k-41k; the lowest
+    unclipped seed measures 0.20)."""
     preset = ppo_preset("Acrobot-v1")
-    config = PPOConfig(env_id="Acrobot-v1", cost=0.3, total_timesteps=61_440, eval_every=20_480, **preset)
-    rows = train_rows(PPO, [config] * len(SEEDS), list(SEEDS))
+    seeds = list(range(12))
+    config = PPOConfig(env_id="Acrobot-v1", cost=0.3, total_timesteps=40_960, eval_every=20_480, **preset)
+    rows = train_rows(PPO, [config] * len(seeds), seeds)
     measured = np.asarray(rows.train.measured_fraction)[:, -1]  # the last 20,480 steps' episodes
     length = np.asarray(rows.train.length)[:, -1]
     message = f"training episodes' measured fractions {measured.round(3).tolist()}, lengths {length.round(1).tolist()}"
-    assert np.median(measured) > 0.25, message  # still measuring ...
-    assert np.median(length) < 250, message  # ... and reaching the goal (Acrobot stops unsolved at 500 steps)
+    assert np.all(measured > 0.1), message  # no seed stops measuring ...
+    assert np.median(length) < 250, message  # ... and they reach the goal (Acrobot stops unsolved at 500 steps)
 
 
 @pytest.mark.slow

@@ -244,6 +244,7 @@ def test_stored_sequences_keep_their_episode_boundaries():
 def test_targets_never_reach_into_the_next_episode():
     config, state = _drqn_buffer()
     steps, start = sequence_sample(state.buffer, jax.random.PRNGKey(0), 16)
+    start = start["carry"]
     q, q_next = drqn.q_values(config, _net(config), state.params, steps, start)
     _, q_next_target = drqn.q_values(config, _net(config), state.target_params, steps, start)
     targets = drqn.sequence_targets(config, steps, q_next, q_next_target)
@@ -281,15 +282,42 @@ def test_stored_start_state_is_the_actors_hidden_state():
     net = _net(config)
     for slot in range(int(state.buffer.size) - n):
         seq = jax.tree.map(lambda x, slot=slot: x[slot][:, None], storage["steps"])  # one sequence, batch 1
-        carry = storage["start"][slot][None]
+        carry = storage["start"]["carry"][slot][None]
         for t in range(f):
             carry, _ = net.apply(state.params, carry, seq["obs"][t], seq["first"][t])
-        np.testing.assert_allclose(carry[0], storage["start"][slot + n], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(carry[0], storage["start"]["carry"][slot + n], rtol=1e-5, atol=1e-5)
+
+
+def test_cached_target_values_follow_the_target_network(monkeypatch):
+    """The buffer's cached target values equal a fresh target-network unroll of every stored sequence: those stored
+    before the last target update (refreshed there, in chunks with a remainder) and after it (computed when
+    stored)."""
+    monkeypatch.setattr(drqn, "REFRESH_CHUNK", 10)  # 24 slots: chunks of 10, 10 and 4
+    config = PROBE_CONFIGS["drqn"].replace(burn_in=3, seq_len=8, train_freq=4, learning_starts=40,
+                                           target_update_interval=48, buffer_size=24)
+    setup = _setup(config)
+    state = drqn.init(config, setup, jax.random.PRNGKey(0))
+    initial_target = state.target_params
+    update = jax.jit(lambda s: drqn.update(config, setup, s)[0])
+    for _ in range(10):  # 16 env steps each: target updates in updates 3, 6 and 9; the buffer wraps
+        state = update(state)
+    leaves = zip(jax.tree.leaves(initial_target), jax.tree.leaves(state.target_params), strict=True)
+    assert not all(np.allclose(a, b) for a, b in leaves)
+    storage = state.buffer.storage
+    assert int(state.buffer.size) == 24
+    steps = jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), storage["steps"])
+    start = storage["start"]["carry"]
+    cached = np.asarray(storage["start"]["target_q"])
+    fresh = np.swapaxes(drqn.target_values(config, _net(config), state.target_params, steps, start), 0, 1)
+    np.testing.assert_allclose(cached, fresh, rtol=1e-5, atol=1e-5)
+    online = np.swapaxes(drqn.target_values(config, _net(config), state.params, steps, start), 0, 1)
+    assert not np.allclose(cached, online, rtol=1e-3, atol=1e-3)
 
 
 def test_burn_in_warms_up_the_state_without_gradient_or_loss():
     config, state = _drqn_buffer(burn_in=3)
     steps, start = sequence_sample(state.buffer, jax.random.PRNGKey(1), 32)
+    start = start["carry"]
     b = config.burn_in
     # q_values = a full unroll from the stored state, minus the burn-in outputs.
     net = _net(config)
@@ -301,8 +329,10 @@ def test_burn_in_warms_up_the_state_without_gradient_or_loss():
     np.testing.assert_allclose(q, jnp.stack(full[b:]), rtol=1e-5, atol=1e-5)
 
     # The loss ignores burn-in rewards / actions / flags, and no gradient flows into burn-in observations.
+    q_next_target = drqn.target_values(config, _net(config), state.target_params, steps, start)
+
     def loss_of(obs, steps):
-        return drqn.loss(config, _net(config), state.params, state.target_params, {**steps, "obs": obs}, start)
+        return drqn.loss(config, _net(config), state.params, {**steps, "obs": obs}, start, q_next_target)
 
     noisy = {**steps, "reward": steps["reward"].at[:b].add(7.0), "action": steps["action"].at[:b].set(1),
              "terminated": steps["terminated"].at[:b].set(1.0)}

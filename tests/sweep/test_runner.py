@@ -326,6 +326,7 @@ def test_cli_sweep_starts_each_env_from_its_tuned_defaults():
     assert configs["Acrobot-v1", "ppo"].hidden == (128, 128) and configs["CartPole-v0", "ppo"].hidden == (64, 64)
     acrobot_ppo, cartpole_ppo = configs["Acrobot-v1", "ppo"], configs["CartPole-v0", "ppo"]
     assert (acrobot_ppo.update_epochs, acrobot_ppo.num_minibatches) == (10, 8)  # ACROBOT_PPO, runs 8-9
+    assert acrobot_ppo.clip_value is False and cartpole_ppo.clip_value is True  # ACROBOT_PPO, run 11
     assert (cartpole_ppo.update_epochs, cartpole_ppo.num_minibatches) == (4, 4)
     assert (configs["CartPole-v0", "dqn"].hidden, configs["CartPole-v0", "dqn"].n_step) == ((64, 64), 10)
     args = build_parser().parse_args(["sweep", "--env", "Acrobot-v1", "--agent", "ppo", "--no-env-defaults",
