@@ -55,9 +55,10 @@ def replay_sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Any:
 # -- sequences (recurrent agents) ---------------------------------------------------------------------------------
 #
 # A sequence buffer is a `ReplayBuffer` whose items are {"steps": S consecutive steps of one env, "start": what the
-# learner needs at the first step (a recurrent agent's hidden state)}. Steps keep their episode boundaries (the
-# `first` / `done` flags stored with them): a sequence may cross into the next episode, and the learner resets its
-# hidden state and cuts its returns there. The ring logic is `replay_add` / `replay_sample`'s.
+# learner needs per sequence (a recurrent agent's hidden state at the first step; DRQN adds its cached targets)}.
+# Steps keep their episode boundaries (the `first` / `done` flags stored with them): a sequence may cross into the
+# next episode, and the learner resets its hidden state and cuts its returns there. The ring logic is
+# `replay_add` / `replay_sample`'s.
 
 
 def sequence_init(example_step: Any, example_start: Any, length: int, capacity: int) -> ReplayBuffer:
