@@ -29,6 +29,7 @@ from amjax.agents.q_learning import (
     learn_or_wait,
     make_optimizer,
     n_step_transitions,
+    target_sync,
     td_targets,
     transition_arrays,
     update_target,
@@ -151,7 +152,8 @@ def update(config: DQNConfig, setup: Setup, state: DQNState) -> tuple[DQNState, 
     )
 
     # 3. Target network: blend with rate tau each time target_update_interval env steps pass.
-    target_params = update_target(config, learning, state.env_steps, env_steps, params, state.target_params)
+    sync = target_sync(config, learning, state.env_steps, env_steps)
+    target_params = update_target(config, sync, params, state.target_params)
 
     new_state = DQNState(params, target_params, opt_state, buffer, envs, pending, key_bits(key), env_steps)
     return new_state, UpdateStats(loss, FinishedEpisodes.of(transitions))

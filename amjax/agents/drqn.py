@@ -300,9 +300,10 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
 
     # 3. Target network: blend with rate tau each time target_update_interval env steps pass; then the buffer's
     #    cached target values follow it.
-    target_params = update_target(config, learning, state.env_steps, env_steps, params, state.target_params)
+    sync = target_sync(config, learning, state.env_steps, env_steps)
+    target_params = update_target(config, sync, params, state.target_params)
     buffer = uniform_cond(
-        target_sync(config, learning, state.env_steps, env_steps),
+        sync,
         lambda target_params, buffer: refresh_target_values(config, setup.network, target_params, buffer),
         lambda target_params, buffer: buffer,
         target_params,

@@ -167,19 +167,16 @@ def learn_or_wait(learning: jax.Array, learn: Any, *operands: Any) -> tuple[Any,
 def target_sync(
     config: QLearningConfig, learning: jax.Array, env_steps: jax.Array, new_env_steps: jax.Array
 ) -> jax.Array:
-    """Whether the target network changes in the update from `env_steps` to `new_env_steps` (`update_target`)."""
+    """Whether the target network changes in the update from `env_steps` to `new_env_steps`: each time
+    `target_update_interval` env steps have passed, once learning has started (`update_target`'s predicate)."""
     interval = config.target_update_interval
     return learning & (new_env_steps // interval != env_steps // interval)
 
 
-def update_target(
-    config: QLearningConfig, learning: jax.Array, env_steps: jax.Array, new_env_steps: jax.Array, params: Any,
-    target_params: Any,
-) -> Any:
-    """The target network, blended with rate tau each time `target_update_interval` env steps have passed (from
-    `env_steps` to `new_env_steps`) once learning has started."""
+def update_target(config: QLearningConfig, sync: jax.Array, params: Any, target_params: Any) -> Any:
+    """The target network, blended with rate tau where `sync` (`target_sync`)."""
     return uniform_cond(
-        target_sync(config, learning, env_steps, new_env_steps),
+        sync,
         lambda tau, params, target: optax.incremental_update(params, target, tau),
         lambda tau, params, target: target,
         config.tau,
