@@ -1,10 +1,11 @@
 """A sweep's compiled batches: how its configurations are grouped into padded batches, and the jitted programs
-that initialise and train one batch (the pieces the runner drives and the benchmarks time)."""
+that initialise, train and re-score one batch (the pieces the runner drives and the benchmarks time)."""
 
 from __future__ import annotations
 
 import functools
 import math
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -13,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from amjax.agents import ALGORITHMS, Algorithm, init_run, run_evals, stack_configs
+from amjax.agents import ALGORITHMS, Algorithm, init_run, rescore, run_evals, stack_configs
 from amjax.sweep.devices import config_sharding, sharded_jit, sweep_devices
 from amjax.sweep.grid import RunConfig, group_runs
 
@@ -80,4 +81,61 @@ def compiled_programs(
     return init, chunk
 
 
-__all__ = ["Batch", "chunk_evals", "compiled_programs", "plan_batches"]
+@functools.cache
+def rescore_program(algo: Algorithm, devices: tuple[jax.Device, ...]) -> Callable:
+    """Jitted re-scoring of every configuration's best policy (`training.rescore`), split over `devices`."""
+    sharding = config_sharding(list(devices))
+    batched = jax.vmap(lambda config, state: rescore(algo, config, state))
+    return sharded_jit(batched, list(devices), in_shardings=sharding, out_shardings=sharding)
+
+
+@dataclass(frozen=True)
+class BatchPrograms:
+    """One batch's stacked configurations and keys (`Batch.stacked`) and its programs compiled for them:
+    `init(configs, keys)`, `chunk(configs, states)` (train `evals_per_chunk` evaluation periods) and
+    `rescore(configs, states)`. `chunk` and `rescore` take configs and plain (strongly typed) state arrays placed
+    with `config_sharding(devices)`, as the runner passes them."""
+
+    configs: Any
+    keys: jax.Array
+    init: Callable
+    chunk: Callable
+    rescore: Callable
+    evals_per_chunk: int
+
+
+# jaxlib 0.10.2 is not safe compiling two programs at once: the first compile of an operation in a process can fail
+# ("Unable to convert MHLO to StableHLO", an "mhlo.unknown" op) while another thread compiles. Seen 2026-11-26: 4 tiny
+# PPO batches compiled on 4 threads, 8 rounds after `jax.clear_caches()`: the first round failed in 2-3 threads
+# (also after a DQN batch had compiled alone), every later round passed.
+COMPILE_LOCK = threading.Lock()
+
+
+def compile_batch(batch: Batch, target_chunks: int, devices: tuple[jax.Device, ...]) -> BatchPrograms:
+    """Compile a batch's programs ahead of time (nothing is allocated or run: the train states are sized with
+    `jax.eval_shape`), so that the sweep runner can compile the next batch on another thread while the current
+    one trains. One compile at a time in the process (`COMPILE_LOCK`)."""
+    evals_per_chunk = chunk_evals(batch.runs[0].config.num_evals, target_chunks)
+    sharding = config_sharding(list(devices))
+
+    def placed(tree: Any, weak: bool) -> Any:
+        return jax.tree.map(
+            lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding, weak_type=weak and x.weak_type), tree)
+
+    with COMPILE_LOCK:
+        init, chunk = compiled_programs(batch.algo, evals_per_chunk, devices)
+        configs, keys = batch.stacked()
+        states = placed(jax.eval_shape(init, configs, keys), weak=False)  # fresh or restored: plain arrays
+        configs_placed = placed(configs, weak=True)
+        return BatchPrograms(
+            configs=configs,
+            keys=keys,
+            init=init.lower(configs, keys).compile(),
+            chunk=chunk.lower(configs_placed, states).compile(),
+            rescore=rescore_program(batch.algo, devices).lower(configs_placed, states).compile(),
+            evals_per_chunk=evals_per_chunk,
+        )
+
+
+__all__ = ["COMPILE_LOCK", "Batch", "BatchPrograms", "chunk_evals", "compile_batch", "compiled_programs",
+           "plan_batches", "rescore_program"]

@@ -170,8 +170,8 @@ def _is_done(rescored: pd.DataFrame | None, config_ids: Sequence[str]) -> bool:
 def _copy_checkpoint(out: Path, part: Path, batch_name: str, config_ids: Sequence[str]) -> None:
     """Start a part from `out`'s checkpoint of the batch (and its rows) when that is further on: a sweep that ran
     locally for a while resumes on the cluster where it stopped."""
-    source = out / "checkpoints" / f"{batch_name}.msgpack"
-    target = part / "checkpoints" / f"{batch_name}.msgpack"
+    source = storage.checkpoint_path(out, batch_name)
+    target = storage.checkpoint_path(part, batch_name)
     if storage.checkpoint_evals(source) <= storage.checkpoint_evals(target):
         return
     atomic_write(target, lambda tmp: shutil.copyfile(source, tmp))
@@ -225,7 +225,7 @@ def merge_part(out: Path, batch_name: str, results: pd.DataFrame | None,
     batch not finished in `out` already; otherwise it is dropped (a worker of a killed driver that fell behind).
     Raises FolderBusyError if a worker still holds the part."""
     part = part_folder(out, batch_name)
-    checkpoint = Path("checkpoints") / f"{batch_name}.msgpack"
+    checkpoint = storage.checkpoint_path(Path(), batch_name)
     with folder_lock(part, argument=f"parts/{batch_name}"):
         rows = storage.read_table(part / "results")
         part_rescored = storage.read_table(part / "rescored")

@@ -4,6 +4,9 @@ checkpointed, so that killing the process at any moment and rerunning the same c
 
 Results and checkpoints are written atomically, results first: a rerun recomputes at most the work after the
 last checkpoint (training is deterministic), and rows are keyed by (config_id, env_steps) so none is duplicated.
+
+Each batch's programs are compiled ahead of time on a background thread while the batch before it trains;
+finished batches are skipped without compiling.
 """
 
 from __future__ import annotations
@@ -12,8 +15,10 @@ import functools
 import json
 import operator
 import os
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,13 +28,13 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from amjax.agents import Algorithm, EvalRow, init_run, rescore
+from amjax.agents import EvalRow, init_run
 from amjax.agents.saved import SavedPolicy, load_policy, save_policy
 from amjax.files import folder_lock, remove_partial_writes
 from amjax.sweep import storage
-from amjax.sweep.batches import Batch, chunk_evals, compiled_programs, plan_batches
+from amjax.sweep.batches import Batch, BatchPrograms, compile_batch, plan_batches
 from amjax.sweep.cluster import PARTS, check_engine, check_parameters, drive, merge_parts, parse_cluster
-from amjax.sweep.devices import config_sharding, sharded_jit, sweep_devices
+from amjax.sweep.devices import config_sharding, sweep_devices
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 from amjax.sweep.loggers import RunLogger
 
@@ -50,17 +55,9 @@ class SweepResult:
     table: pd.DataFrame  # median / IQR over seeds
 
 
-@functools.cache
-def _compiled_rescore(algo: Algorithm, devices: tuple[jax.Device, ...]) -> Callable:
-    """Jitted re-scoring of every configuration's best policy (`training.rescore`), split over `devices`."""
-    sharding = config_sharding(list(devices))
-    batched = jax.vmap(lambda config, state: rescore(algo, config, state))
-    return sharded_jit(batched, list(devices), in_shardings=sharding, out_shardings=sharding)
-
-
-def _rescored_rows(batch: Batch, configs: Any, states: Any, devices: tuple[jax.Device, ...]) -> pd.DataFrame:
+def _rescored_rows(batch: Batch, configs: Any, states: Any, programs: BatchPrograms) -> pd.DataFrame:
     """Each real configuration's best policy on fresh test episodes (one row per configuration)."""
-    scores = jax.device_get(_compiled_rescore(batch.algo, devices)(configs, states))
+    scores = jax.device_get(programs.rescore(configs, states))
     real = len(batch.runs)
     return pd.DataFrame({
         "config_id": [r.config_id for r in batch.runs],
@@ -223,16 +220,19 @@ def _train_batch(
     devices: tuple[jax.Device, ...],
     wall_time: storage.WallTime,
     rescored: pd.DataFrame | None,
+    programs: BatchPrograms | None = None,
 ) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
     """Train (or resume) one batch chunk by chunk, writing rows after every chunk, then re-score its best policies;
-    returns the results and re-scoring tables."""
+    returns the results and re-scoring tables. `programs`: the batch's programs compiled ahead (`compile_batch`);
+    compiled here if not given."""
     config0 = batch.runs[0].config
     num_evals = config0.num_evals
-    evals_per_chunk = chunk_evals(num_evals, target_chunks)
-    ckpt_path = out / "checkpoints" / f"{batch.name}.msgpack"
-    init, chunk = compiled_programs(batch.algo, evals_per_chunk, devices)
-    configs, keys = batch.stacked()
-    states = jax.device_get(init(configs, keys))
+    if programs is None:
+        programs = compile_batch(batch, target_chunks, devices)
+    evals_per_chunk = programs.evals_per_chunk
+    ckpt_path = storage.checkpoint_path(out, batch.name)
+    configs = programs.configs
+    states = jax.device_get(programs.init(configs, programs.keys))
     evals_done = 0
     if ckpt_path.exists():  # it holds the real configurations' rows only, whatever the padding was
         real_rows, evals_done = storage.load_checkpoint(ckpt_path, _real(batch, states))
@@ -243,11 +243,11 @@ def _train_batch(
     configs, states = jax.device_put((configs, states), sharding)
     bar.update(len(batch.runs) * evals_done * config0.eval_every)
     label = f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs)"
-    bar.set_description(f"{label}, compiling" if evals_done < num_evals else label)
+    bar.set_description(label)
     last_checkpoint = time.monotonic()
     while evals_done < num_evals:
         start = time.monotonic()
-        states, rows = chunk(configs, states)
+        states, rows = programs.chunk(configs, states)
         rows = jax.device_get(rows)
         evals_done += evals_per_chunk
         new_rows = _rows(batch, rows, hyper_columns)
@@ -259,7 +259,7 @@ def _train_batch(
         if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
             if save_policies and evals_done < num_evals:  # a finished batch saves them once, re-scored, below
                 _save_policies(out, batch, states, evals_done, results, None)
-            storage.save_checkpoint(ckpt_path, _real(batch, states), evals_done)
+            storage.save_checkpoint(ckpt_path, _real(batch, jax.device_get(states)), evals_done)
             last_checkpoint = time.monotonic()
         steps = len(batch.runs) * evals_per_chunk * config0.eval_every
         best = np.nanmedian(np.asarray(states.best_return)[: len(batch.runs)])
@@ -271,7 +271,7 @@ def _train_batch(
     done = set() if rescored is None else set(rescored.config_id)
     if any(run.config_id not in done for run in batch.runs):  # finished now, or before a kill
         bar.set_description(f"{label}, re-scoring the best policies")
-        new = _rescored_rows(batch, configs, states, devices)
+        new = _rescored_rows(batch, configs, states, programs)
         rescored = storage.merge_by_config(rescored, new)
         storage.write_table(out / "rescored", rescored)
         if save_policies:
@@ -279,6 +279,30 @@ def _train_batch(
                            new.set_index("config_id").drop(columns="best_policy_episodes"))
         bar.set_description(label)
     return results, rescored
+
+
+def _batch_finished(out: Path, batch: Batch, rescored: pd.DataFrame | None) -> bool:
+    """Whether a rerun has nothing left to do for `batch`: its checkpoint holds every evaluation and each of its
+    configurations is re-scored."""
+    done = set() if rescored is None else set(rescored.config_id)
+    return (all(run.config_id in done for run in batch.runs)
+            and storage.checkpoint_evals(storage.checkpoint_path(out, batch.name)) == batch.runs[0].config.num_evals)
+
+
+def _in_background(fn: Callable[..., Any], *args: Any) -> Future:
+    """`fn(*args)` on a daemon thread (an interrupted sweep does not wait for it to finish); its result or
+    exception arrives through the returned future."""
+    future: Future = Future()
+
+    def run() -> None:
+        if future.set_running_or_notify_cancel():
+            try:
+                future.set_result(fn(*args))
+            except BaseException as error:  # re-raised by future.result() in the sweep's thread
+                future.set_exception(error)
+
+    threading.Thread(target=run, name="amjax-compile-ahead", daemon=True).start()
+    return future
 
 
 def run_sweep(
@@ -357,11 +381,23 @@ def run_sweep(
         bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
         try:
             if target is None:
-                for batch in batches:
+                todo = [batch for batch in batches if not _batch_finished(out, batch, rescored)]
+                bar.update(sum(len(b.runs) * b.runs[0].config.num_evals * b.runs[0].config.eval_every
+                               for b in batches if b not in todo))
+                # Each batch's programs compile on a background thread while the batch before it trains (a
+                # compile keeps about one core busy); the training thread compiles nothing meanwhile.
+                ahead = _in_background(compile_batch, todo[0], target_chunks, devices) if todo else None
+                for i, batch in enumerate(todo):
+                    bar.set_description(f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs), "
+                                        "compiling")
+                    programs = ahead.result()
+                    if i + 1 < len(todo):
+                        ahead = _in_background(compile_batch, todo[i + 1], target_chunks, devices)
                     results, rescored = _train_batch(
                         batch, out, results, hyper_columns, bar, target_chunks=target_chunks,
                         checkpoint_every_s=checkpoint_every_s, save_policies=save_policies, on_chunk=on_chunk,
                         loggers=loggers, devices=devices, wall_time=wall_time, rescored=rescored,
+                        programs=programs,
                     )
             else:
                 def on_rows(rows: pd.DataFrame, results: pd.DataFrame) -> None:  # a batch folded in

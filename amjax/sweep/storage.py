@@ -102,6 +102,11 @@ class WallTime:
         return seconds
 
 
+def checkpoint_path(folder: Path, batch_name: str) -> Path:
+    """Where a sweep folder (or a cluster part) keeps the checkpoint of batch `batch_name`."""
+    return Path(folder) / "checkpoints" / f"{batch_name}.msgpack"
+
+
 def save_checkpoint(path: Path, state: Any, evals_done: int) -> None:
     """Save a pytree of arrays (any structure) with msgpack; restore it with `load_checkpoint`."""
     leaves = [np.asarray(x) for x in jax.tree.leaves(state)]

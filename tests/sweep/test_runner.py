@@ -148,6 +148,51 @@ def test_resume_after_interrupt(tmp_path, full_run, checkpoint_every_s, stop_swe
     np.testing.assert_allclose(a[VALUE_COLUMNS].to_numpy(float), b[VALUE_COLUMNS].to_numpy(float), rtol=1e-5)
 
 
+def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
+    """Each batch's programs compile on a background thread while the batch before it trains; a failed compile
+    stops the sweep with its error and loses nothing already written; a rerun does not compile finished batches."""
+    import threading
+
+    from amjax.sweep import runner
+
+    spec = SweepSpec(**{**TINY.__dict__, "costs": (0.3,), "seeds": (0,),
+                        "hyperparams": {"num_envs": 4, "num_steps": 32, "hidden": [(16,), (8,)]}})
+    events = []
+    compile_batch = runner.compile_batch
+
+    def logged(batch, *args):
+        events.append(("compile", batch.name, threading.current_thread().name))
+        return compile_batch(batch, *args)
+
+    monkeypatch.setattr(runner, "compile_batch", logged)
+    full = run_sweep(spec, tmp_path / "full", progress=False, target_chunks=4,
+                     on_chunk=lambda results: events.append(("chunk", results.config_id.nunique())))
+    compiles = [e for e in events if e[0] == "compile"]
+    first, second = (name for _, name, _ in compiles)
+    assert first != second and events[:2] == compiles  # the second batch's compile began before any chunk ran
+    assert [e[0] for e in events[2:]] == ["chunk"] * 8
+    assert all(thread == "amjax-compile-ahead" for _, _, thread in compiles)
+    assert len(full.summary) == 2 and full.results.env_steps.max() == spec.total_timesteps
+
+    def second_fails(batch, *args):
+        if batch.name == second:
+            raise RuntimeError("compile failed")
+        return compile_batch(batch, *args)
+
+    monkeypatch.setattr(runner, "compile_batch", second_fails)
+    with pytest.raises(RuntimeError, match="compile failed"):
+        run_sweep(spec, tmp_path / "failed", progress=False, target_chunks=4)
+    written = pd.read_parquet(tmp_path / "failed" / "results.parquet")
+    assert len(written) == 4 and written.config_id.nunique() == 1  # the first batch, whole
+
+    def no_compile(batch, *args):
+        raise AssertionError(f"compiled the finished batch {batch.name}")
+
+    monkeypatch.setattr(runner, "compile_batch", no_compile)
+    again = run_sweep(spec, tmp_path / "full", progress=False, target_chunks=4)
+    pd.testing.assert_frame_equal(again.summary, full.summary)
+
+
 def test_sigkill_then_rerun_resumes(tmp_path):
     """A real SIGKILL of the command-line process at an arbitrary point; the same command then completes."""
     out = tmp_path / "run"
