@@ -163,10 +163,6 @@ def part_folder(out: Path, batch_name: str) -> Path:
     return Path(out) / PARTS / batch_name
 
 
-def _is_done(rescored: pd.DataFrame | None, config_ids: Sequence[str]) -> bool:
-    return rescored is not None and set(config_ids) <= set(rescored.config_id)
-
-
 def _copy_checkpoint(out: Path, part: Path, batch_name: str, config_ids: Sequence[str]) -> None:
     """Start a part from `out`'s checkpoint of the batch (and its rows) when that is further on: a sweep that ran
     locally for a while resumes on the cluster where it stopped."""
@@ -203,7 +199,7 @@ def train_part(spec_json: dict[str, Any], out: str, batch_name: str, max_batch: 
     info = {"batch": batch_name, "node": socket.gethostname(), "pid": os.getpid(), "devices": len(devices)}
     with folder_lock(part, wait=True):  # a worker left by a killed driver finishes first
         remove_partial_writes(part)
-        if _is_done(storage.read_table(out_path / "rescored"), config_ids):  # merged already
+        if storage.all_rescored(storage.read_table(out_path / "rescored"), config_ids):  # merged already
             return {**info, "seconds": 0.0}
         storage.write_json(part / "worker.json", info)
         _copy_checkpoint(out_path, part, batch_name, config_ids)
@@ -231,7 +227,7 @@ def merge_part(out: Path, batch_name: str, results: pd.DataFrame | None,
         part_rescored = storage.read_table(part / "rescored")
         ahead = part_rescored is not None or (
             storage.checkpoint_evals(part / checkpoint) > storage.checkpoint_evals(out / checkpoint))
-        if rows is None or not ahead or _is_done(rescored, rows.config_id.unique()):
+        if rows is None or not ahead or storage.all_rescored(rescored, rows.config_id.unique()):
             rows = None
         else:
             results = storage.merge_rows(results, rows)
@@ -283,7 +279,7 @@ def drive(spec: Any, out: Path, batches: Sequence[Any], results: pd.DataFrame | 
     devices (the driver's: `batches` were planned for them); fold each finished part into
     `out`, call `on_rows(new_rows, results)` and `record(batch, where_it_ran)`. A failed job is submitted again
     (the worker resumes from the part's checkpoint); Ctrl-C cancels the running jobs."""
-    queue = [b for b in batches if not _is_done(rescored, [r.config_id for r in b.runs])]
+    queue = [b for b in batches if not storage.all_rescored(rescored, [r.config_id for r in b.runs])]
     bar.update(sum(len(b.runs) for b in batches if b not in queue) * spec.total_timesteps)
     executor = make_executor(target, out / LOGS, num_devices, parameters)
     running: dict[str, tuple[Any, Any]] = {}

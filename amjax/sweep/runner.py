@@ -268,8 +268,7 @@ def _train_batch(
         bar.update(steps)
         if on_chunk is not None:
             on_chunk(results)
-    done = set() if rescored is None else set(rescored.config_id)
-    if any(run.config_id not in done for run in batch.runs):  # finished now, or before a kill
+    if not storage.all_rescored(rescored, (run.config_id for run in batch.runs)):  # finished now, or before a kill
         bar.set_description(f"{label}, re-scoring the best policies")
         new = _rescored_rows(batch, configs, states, programs)
         rescored = storage.merge_by_config(rescored, new)
@@ -284,8 +283,7 @@ def _train_batch(
 def _batch_finished(out: Path, batch: Batch, rescored: pd.DataFrame | None) -> bool:
     """Whether a rerun has nothing left to do for `batch`: its checkpoint holds every evaluation and each of its
     configurations is re-scored."""
-    done = set() if rescored is None else set(rescored.config_id)
-    return (all(run.config_id in done for run in batch.runs)
+    return (storage.all_rescored(rescored, (run.config_id for run in batch.runs))
             and storage.checkpoint_evals(storage.checkpoint_path(out, batch.name)) == batch.runs[0].config.num_evals)
 
 
@@ -381,9 +379,10 @@ def run_sweep(
         bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
         try:
             if target is None:
-                todo = [batch for batch in batches if not _batch_finished(out, batch, rescored)]
+                finished = [_batch_finished(out, batch, rescored) for batch in batches]
+                todo = [batch for batch, done in zip(batches, finished, strict=True) if not done]
                 bar.update(sum(len(b.runs) * b.runs[0].config.num_evals * b.runs[0].config.eval_every
-                               for b in batches if b not in todo))
+                               for b, done in zip(batches, finished, strict=True) if done))
                 # Each batch's programs compile on a background thread while the batch before it trains (a
                 # compile keeps about one core busy); the training thread compiles nothing meanwhile.
                 ahead = _in_background(compile_batch, todo[0], target_chunks, devices) if todo else None

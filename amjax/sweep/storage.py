@@ -15,7 +15,7 @@ import os
 import platform
 import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -100,6 +100,11 @@ class WallTime:
         seconds = round(self.seconds, 1)
         write_json(self.path, {"seconds": seconds, "invocations": self.invocations})
         return seconds
+
+
+def all_rescored(rescored: pd.DataFrame | None, config_ids: Iterable[str]) -> bool:
+    """Whether every configuration in `config_ids` has its re-scored row in `rescored` (its batch is finished)."""
+    return rescored is not None and set(config_ids) <= set(rescored.config_id)
 
 
 def checkpoint_path(folder: Path, batch_name: str) -> Path:
