@@ -172,13 +172,16 @@ def init(config: DRQNConfig, setup: Setup, key: jax.Array) -> DRQNState:
 
 
 def q_values(
-    config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], start: Any
+    config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], start: Any,
+    straight: bool = False,
 ) -> tuple[jax.Array, jax.Array]:
     """Unroll a batch of stored sequences (time-major [burn_in + seq_len, batch]) from their stored start states.
 
     The first `burn_in` steps only warm the hidden state up (no gradient). For the trained steps returns the
-    Q-values [seq_len, batch, A] and the bootstrap Q-values of each step's pre-reset next observation."""
-    return _trained_q_values(config, net, params, steps, _burn_in(config, net, params, steps, start))
+    Q-values [seq_len, batch, A] and the bootstrap Q-values of each step's pre-reset next observation. `straight`:
+    the trained steps unrolled as straight-line code, for values that are not differentiated (target values)."""
+    carry = _burn_in(config, net, params, steps, start)
+    return _trained_q_values(config, net, params, steps, carry, straight)
 
 
 def _burn_in(config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], start: Any) -> Any:
@@ -186,15 +189,16 @@ def _burn_in(config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dic
     if not config.burn_in:
         return start
     carries, _ = net.apply(jax.lax.stop_gradient(params), start, steps["obs"][: config.burn_in],
-                           steps["first"][: config.burn_in], method="unroll")
+                           steps["first"][: config.burn_in], straight=True, method="unroll")
     return jax.lax.stop_gradient(jax.tree.map(lambda c: c[-1], carries))
 
 
 def _trained_q_values(
-    config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], carry: Any
+    config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], carry: Any,
+    straight: bool,
 ) -> tuple[jax.Array, jax.Array]:
     trained = jax.tree.map(lambda x: x[config.burn_in :], steps)
-    carries, q = net.apply(params, carry, trained["obs"], trained["first"], method="unroll")
+    carries, q = net.apply(params, carry, trained["obs"], trained["first"], straight, method="unroll")
     _, q_next = net.apply(params, carries, trained["next_obs"], jnp.zeros_like(trained["first"]))
     return q, q_next
 
@@ -227,7 +231,7 @@ def target_values(
     config: DRQNConfig, net: RecurrentQNetwork, target_params: Any, steps: dict[str, jax.Array], start: Any
 ) -> jax.Array:
     """The target network's bootstrap Q-values [seq_len, batch, A] of a batch of stored sequences (`q_values`)."""
-    return q_values(config, net, target_params, steps, start)[1]
+    return q_values(config, net, target_params, steps, start, straight=True)[1]
 
 
 def loss(

@@ -185,6 +185,22 @@ def test_hidden_state_resets_inside_replayed_sequences():
     assert not np.allclose(q[trained_second - 1, 0], q[trained_second - 1, 1])
 
 
+@pytest.mark.parametrize("cell", ["gru", "lstm"])
+def test_straight_unroll_equals_the_loop(cell):
+    """The straight-line unroll (burn-ins, target values) computes what the loop does, resets included."""
+    config = PROBE_CONFIGS["drqn"].replace(burn_in=2, seq_len=6, cell=cell)
+    net, params = _net(config), drqn.init(config, _setup(config), jax.random.PRNGKey(0)).params
+    start = jax.tree.map(lambda c: jax.random.normal(jax.random.PRNGKey(1), c.shape),
+                         zero_carry(cell, config.rnn_size, (2,)))
+    looped = net.apply(params, start, OBS, FIRST, method="unroll")
+    straight = net.apply(params, start, OBS, FIRST, straight=True, method="unroll")
+    for a, b in zip(jax.tree.leaves(looped), jax.tree.leaves(straight), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    steps = {"obs": OBS, "first": FIRST, "next_obs": OBS[::-1]}
+    np.testing.assert_allclose(drqn.target_values(config, net, params, steps, start),
+                               drqn.q_values(config, net, params, steps, start)[1], rtol=1e-5, atol=1e-6)
+
+
 def test_ppo_rnn_hidden_state_resets_inside_update_sequences():
     config = PROBE_CONFIGS["ppo-rnn"]
     state = ppo_rnn.init(config, _setup(config), jax.random.PRNGKey(0))
