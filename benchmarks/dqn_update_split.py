@@ -6,9 +6,13 @@ One core, the per-core share of the replicate's costed DQN batch (`--configs`, d
 - full update: act, step `train_freq` times, n-step transitions, buffer write, gradient step, target update;
 - without the gradient step: the same update before `learning_starts` (a real branch: no gradient is computed);
 - rollout alone: the same `rollout` with uniform random actions, nothing else carried;
-- the env alone: the wrapped training env stepped as many times, in a plain `lax.scan`.
+- the env alone: the configuration's wrapped training envs stepped as many times, in a plain `lax.scan`.
+
+`--layouts 1x4 2x2 4x1` also times the full update with other envs per configuration x steps per env between
+gradient steps (the same env steps per gradient step: the replay ratio).
 
     taskset -c 0 python benchmarks/dqn_update_split.py                       # LunarLander-v3, 20 configurations
+    taskset -c 0 python benchmarks/dqn_update_split.py --layouts 1x4 2x2    # the preset's 4x1 against these
     taskset -c 0 python benchmarks/dqn_update_split.py --env Acrobot-v1
 """
 
@@ -47,6 +51,9 @@ def main() -> None:
     parser.add_argument("--env", default="LunarLander-v3")
     parser.add_argument("--configs", type=int, default=20, help="configurations on this core")
     parser.add_argument("--updates", type=int, default=512, help="updates per timed call")
+    parser.add_argument("--layouts", nargs="*", default=[], metavar="ENVSxFREQ",
+                        help="also time the full update with these envs per configuration x steps per env between "
+                             "gradient steps (e.g. 1x4 4x1: the same 4 env steps per gradient step)")
     args = parser.parse_args()
     # The env-alone case returns a scalar, so its donated envs are not reused; nothing to warn about.
     warnings.filterwarnings("ignore", message="Some donated buffers were not usable")
@@ -56,6 +63,14 @@ def main() -> None:
     configs = [run.config for run in expand(spec) if not run.config.vanilla][: args.configs]
     if configs[0].learning_starts == 0:
         raise SystemExit("learning_starts is 0: no update of this batch skips the gradient step")
+    split(algo, args, configs, all_cases=True)
+    for layout in args.layouts:
+        num_envs, train_freq = (int(part) for part in layout.split("x"))
+        split(algo, args, [c.replace(num_envs=num_envs, train_freq=train_freq) for c in configs], all_cases=False)
+
+
+def split(algo, args, configs, all_cases: bool) -> None:
+    """Time the cases for `configs` (all four, or the full update alone) and print them."""
     stacked = stack_configs(configs)
     keys = jnp.stack([jax.random.PRNGKey(i) for i in range(len(configs))])
     state = jax.jit(jax.vmap(lambda c, k: algo.init(c, algo.setup(c), k)))(stacked, keys)
@@ -91,25 +106,27 @@ def main() -> None:
 
     def env_alone(config, envs, key):
         setup = algo.setup(config)
-        state = jax.tree.map(lambda x: x[0], envs.state)  # one env per configuration, as the replicate's DQN
+        step = jax.vmap(setup.env.step, (0, 0, 0, None))  # the configuration's num_envs envs
 
         def body(state, key):
             action_key, step_key = jax.random.split(key)
-            action = jax.random.randint(action_key, (), 0, setup.num_actions)
-            _, state, reward, *_ = setup.env.step(step_key, state, action, setup.env_params)
-            return state, reward
+            action = jax.random.randint(action_key, (config.num_envs,), 0, setup.num_actions)
+            _, state, reward, *_ = step(jax.random.split(step_key, config.num_envs), state, action, setup.env_params)
+            return state, reward.sum()
 
-        return jax.lax.scan(body, state, jax.random.split(fast_key(key), updates * per_update))[1].sum()
+        steps = updates * config.train_freq
+        return jax.lax.scan(body, envs.state, jax.random.split(fast_key(key), steps))[1].sum()
 
-    cases = {
-        "full update": seconds(jax.vmap(full), stacked, state),
-        "without the gradient step": seconds(jax.vmap(without_gradient), stacked, state),
-        "rollout alone (random actions)": seconds(jax.vmap(random_rollout), stacked, state.envs, keys),
-        "the env alone": seconds(jax.vmap(env_alone), stacked, state.envs, keys),
-    }
+    cases = {"full update": seconds(jax.vmap(full), stacked, state)}
+    if all_cases:
+        cases |= {
+            "without the gradient step": seconds(jax.vmap(without_gradient), stacked, state),
+            "rollout alone (random actions)": seconds(jax.vmap(random_rollout), stacked, state.envs, keys),
+            "the env alone": seconds(jax.vmap(env_alone), stacked, state.envs, keys),
+        }
     steps = len(configs) * updates * per_update
     print(f"{args.env} Dueling DQN, {len(configs)} configurations on one core, {updates} updates of "
-          f"{per_update} env steps each ({jax.devices()[0].device_kind})")
+          f"{configs[0].num_envs} envs x {configs[0].train_freq} steps each ({jax.devices()[0].device_kind})")
     print(f"{'case':<32} {'ms / update':>12} {'share':>7} {'env-steps/s':>12}")
     for name, secs in cases.items():
         print(f"{name:<32} {secs / updates * 1e3:>12.3f} {secs / cases['full update']:>7.0%} {steps / secs:>12,.0f}")

@@ -95,6 +95,14 @@ ACROBOT_DQN: dict[str, object] = {
     "hidden": (128, 128),
     "n_step": 3,
 }
+# Dueling DQN on LunarLander-v3: four envs per configuration, a gradient step after each step of all four (still 64
+# samples per 4 env steps: the replay ratio, exploration schedule, target interval and budget are the defaults').
+# The port steps 4 envs nearly as fast as one (a single env is where it is slowest per step), so an update of the
+# replicate's 20 configurations per core costs 2.12 ms instead of 2.75 (1.3x; docs/lunar_lander.md).
+LUNAR_LANDER_DQN: dict[str, object] = {
+    "num_envs": 4,
+    "train_freq": 1,
+}
 
 # PPO on gymnax's Pendulum-v1 (Box control; the Gaussian + Bernoulli head of amjax/agents/policies.py). Pendulum
 # pays -16 to 0 per step over 200 steps; as on Acrobot, unscaled rewards leave the critic behind. Chosen from a
@@ -120,7 +128,7 @@ def scoped(agent: str, values: dict[str, object]) -> dict[str, object]:
 # Per-environment hyperparameters on top of each agent's defaults ("agent.field": value).
 REPLICATE_HYPERPARAMS: dict[str, dict[str, object]] = {
     "Acrobot-v1": scoped("ppo", ACROBOT_PPO) | scoped("dqn", ACROBOT_DQN),
-    "LunarLander-v3": scoped("ppo", LUNAR_LANDER_PPO),
+    "LunarLander-v3": scoped("ppo", LUNAR_LANDER_PPO) | scoped("dqn", LUNAR_LANDER_DQN),
     "Pendulum-v1": scoped("ppo", PENDULUM_PPO),
 }
 
