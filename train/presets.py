@@ -98,7 +98,8 @@ ACROBOT_DQN: dict[str, object] = {
 # Dueling DQN on LunarLander-v3: four envs per configuration, a gradient step after each step of all four (still 64
 # samples per 4 env steps: the replay ratio, exploration schedule, target interval and budget are the defaults').
 # The port steps 4 envs nearly as fast as one (a single env is where it is slowest per step), so an update of the
-# replicate's 20 configurations per core costs 2.12 ms instead of 2.75 (1.3x; docs/lunar_lander.md).
+# replicate's 20 configurations per core costs 2.14 ms instead of 2.87 (1.34x; benchmarks/dqn_update_split.py
+# --layouts, docs/lunar_lander.md).
 LUNAR_LANDER_DQN: dict[str, object] = {
     "num_envs": 4,
     "train_freq": 1,
