@@ -10,7 +10,7 @@ included) and the child's peak resident memory. Cases:
 - `drqn`: DRQN with today's defaults.
 - `ppo-rnn`: recurrent PPO with its defaults.
 
-    taskset -c 1 python benchmarks/recurrent_speed.py     # writes benchmarks/results/recurrent_speed_<date>.md
+    taskset -c 1 python benchmarks/recurrent_speed.py  # writes benchmarks/results/recurrent_speed_<date>[_N].md
     python benchmarks/recurrent_speed.py --configs 4 --steps 4096 --cases drqn  # a smoke run
 """
 
@@ -103,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--configs", type=int, default=50)
     parser.add_argument("--steps", type=int, default=20_480, help="env steps per configuration (rounded)")
     parser.add_argument("--eval-every", type=int, default=10_240)
-    parser.add_argument("--out", default=f"benchmarks/results/recurrent_speed_{datetime.date.today()}.md")
+    parser.add_argument("--out", help="markdown file to write (default: benchmarks/results/recurrent_speed_<date>.md, "
+                        "with _2, _3, ... added rather than overwriting an earlier result)")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -119,11 +120,21 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(results[-1]), flush=True)
     text = markdown(results, args)
     print(text)
-    if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        with open(args.out, "w") as f:
-            f.write(text)
+    out = args.out or _unused_path(f"benchmarks/results/recurrent_speed_{datetime.date.today()}", ".md")
+    os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
+    with open(out, "w") as f:
+        f.write(text)
+    print(f"written to {out}")
     return 0
+
+
+def _unused_path(stem: str, suffix: str) -> str:
+    """`stem + suffix`, or the first of `stem_2 + suffix`, `stem_3 + suffix`, ... that does not exist yet."""
+    path, n = stem + suffix, 1
+    while os.path.exists(path):
+        n += 1
+        path = f"{stem}_{n}{suffix}"
+    return path
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 from amjax.files import FolderBusyError
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 from amjax.sweep.runner import (
+    CompileQueue,
     SweepMismatchError,
     SweepResult,
     SweepTooLargeError,
@@ -12,6 +13,7 @@ from amjax.sweep.runner import (
 )
 
 __all__ = [
+    "CompileQueue",
     "FolderBusyError",
     "RunConfig",
     "SweepMismatchError",

@@ -68,6 +68,43 @@ def test_replicate_runs_reports_and_resumes(tmp_path, monkeypatch, capsys):
     assert json.loads((tmp_path / "CartPole-v0" / "wall_time.json").read_text()) == {"seconds": again, "invocations": 2}
 
 
+def test_next_environment_compiles_while_one_trains(tmp_path, monkeypatch):
+    """One compile queue across the environments: the next environment's batches compile on the background thread
+    (in training order) before this one's report, and a rerun of the finished grid compiles nothing."""
+    import threading
+
+    import amjax.analysis
+    from amjax.sweep import runner
+
+    for env in ("CartPole-v0", "Acrobot-v1"):
+        monkeypatch.setitem(presets.QUICK_BUDGETS, env, (2048, 1024))
+    events = []
+    compile_batch, write_report = runner.compile_batch, amjax.analysis.write_report
+
+    def logged_compile(batch, *args):
+        events.append(("compile", batch.runs[0].env, batch.name, threading.current_thread().name))
+        return compile_batch(batch, *args)
+
+    def logged_report(folder, **kwargs):
+        events.append(("report", folder.name))
+        return write_report(folder, **kwargs)
+
+    monkeypatch.setattr(runner, "compile_batch", logged_compile)
+    monkeypatch.setattr(amjax.analysis, "write_report", logged_report)
+    args = ["replicate", "--quick", "--env", "CartPole-v0", "Acrobot-v1", "--agent", "ppo", "--seeds", "1",
+            "--out", str(tmp_path), "--no-progress", "--no-maps"]
+    assert main(args) == 0
+    compiles = [e for e in events if e[0] == "compile"]
+    assert [e[1] for e in compiles] == ["CartPole-v0"] * 2 + ["Acrobot-v1"] * 2  # vanilla and costed PPO each
+    assert len({e[2] for e in compiles}) == 4 and {e[3] for e in compiles} == {"amjax-compile-ahead"}
+    assert events.index(compiles[2]) < events.index(("report", "CartPole-v0"))
+    assert events[-1] == ("report", "Acrobot-v1")
+    assert pd.read_csv(tmp_path / "paper_table.csv").env.tolist() == ["CartPole-v0"] * 5 + ["Acrobot-v1"] * 5
+    events.clear()
+    assert main(args) == 0
+    assert events == [("report", "CartPole-v0"), ("report", "Acrobot-v1")]
+
+
 @pytest.mark.parametrize(
     ("flags", "message"),
     [

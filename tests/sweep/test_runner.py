@@ -149,11 +149,12 @@ def test_resume_after_interrupt(tmp_path, full_run, checkpoint_every_s, stop_swe
 
 
 def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
-    """Each batch's programs compile on a background thread while the batch before it trains; a failed compile
-    stops the sweep with its error and loses nothing already written; a rerun does not compile finished batches."""
+    """Each batch's programs compile on a background thread while the batch before it trains, and checkpoints are
+    written on a thread of their own; a failed compile stops the sweep with its error and loses nothing already
+    written; a rerun does not compile finished batches."""
     import threading
 
-    from amjax.sweep import runner
+    from amjax.sweep import runner, storage
 
     spec = SweepSpec(**{**TINY.__dict__, "costs": (0.3,), "seeds": (0,),
                         "hyperparams": {"num_envs": 4, "num_steps": 32, "hidden": [(16,), (8,)]}})
@@ -164,14 +165,23 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
         events.append(("compile", batch.name, threading.current_thread().name))
         return compile_batch(batch, *args)
 
+    save_checkpoint = storage.save_checkpoint
+
+    def logged_save(path, state, evals_done):
+        events.append(("checkpoint", evals_done, threading.current_thread().name))
+        save_checkpoint(path, state, evals_done)
+
     monkeypatch.setattr(runner, "compile_batch", logged)
+    monkeypatch.setattr(storage, "save_checkpoint", logged_save)
     full = run_sweep(spec, tmp_path / "full", progress=False, target_chunks=4,
                      on_chunk=lambda results: events.append(("chunk", results.config_id.nunique())))
     compiles = [e for e in events if e[0] == "compile"]
     first, second = (name for _, name, _ in compiles)
     assert first != second and events[:2] == compiles  # the second batch's compile began before any chunk ran
-    assert [e[0] for e in events[2:]] == ["chunk"] * 8
+    assert [e[0] for e in events[2:] if e[0] != "checkpoint"] == ["chunk"] * 8
     assert all(thread == "amjax-compile-ahead" for _, _, thread in compiles)
+    checkpoints = [e for e in events if e[0] == "checkpoint"]
+    assert [e[1] for e in checkpoints][-1] == 4 and all(e[2].startswith("amjax-checkpoint") for e in checkpoints)
     assert len(full.summary) == 2 and full.results.env_steps.max() == spec.total_timesteps
 
     def second_fails(batch, *args):
