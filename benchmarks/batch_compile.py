@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
+import sys
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -24,11 +25,12 @@ import numpy as np
 import amjax
 
 amjax.use_all_cores()  # one CPU device per core, as the replicate command
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
 
-from amjax.agents import stack_configs  # noqa: E402
 from amjax.sweep.batches import compiled_programs, plan_batches, rescore_program  # noqa: E402
 from amjax.sweep.devices import config_sharding, sweep_devices  # noqa: E402
 from amjax.sweep.grid import expand  # noqa: E402
+from benchmarks.replicate_time import probe_inputs  # noqa: E402
 from train.presets import REPLICATE_BUDGETS, replicate_specs  # noqa: E402
 
 OPTIONS: dict[str, dict[str, object] | None] = {
@@ -54,11 +56,7 @@ def main() -> None:
     spec = replicate_specs((args.env,), (args.agent,), args.seeds)[args.env]
     batches = plan_batches(expand(spec), 1024, len(devices))
     batch = next(b for b in batches if b.runs[0].vanilla == (args.batch == "vanilla"))
-    unit = batch.runs[0].config.steps_per_update()
-    period = math.ceil(args.probe_steps / unit) * unit
-    configs = [r.config.replace(total_timesteps=2 * period, eval_every=period).validate() for r in batch.runs]
-    stacked = stack_configs(configs + [configs[-1]] * (batch.size - len(configs)))
-    _, keys = batch.stacked()
+    stacked, keys, period = probe_inputs(batch, args.probe_steps)
     init, chunk = compiled_programs(batch.algo, 1, devices)
     sharding = config_sharding(list(devices))
     print(f"{args.env} {args.agent}, {args.batch} batch: {len(batch.runs)} configurations on {len(devices)} CPU "

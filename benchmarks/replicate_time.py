@@ -25,6 +25,7 @@ import argparse
 import math
 import time
 from functools import partial
+from typing import Any
 
 import jax
 import numpy as np
@@ -41,13 +42,19 @@ from amjax.sweep.grid import expand  # noqa: E402
 from train.presets import REPLICATE_AGENTS, REPLICATE_BUDGETS, replicate_specs  # noqa: E402
 
 
-def probe_batch(batch: Batch, budget: int, probe_steps: int, devices: list) -> dict[str, float]:
-    """Compile time and steady env-steps/s of one batch, and its projected time at `budget` steps per config."""
+def probe_inputs(batch: Batch, probe_steps: int) -> tuple[Any, jax.Array, int]:
+    """`batch`'s configurations cut to two evaluation periods of about `probe_steps` env steps each (stacked and
+    padded as the batch is), its keys, and the period's env steps."""
     unit = batch.runs[0].config.steps_per_update()
     period = math.ceil(probe_steps / unit) * unit
     configs = [r.config.replace(total_timesteps=2 * period, eval_every=period).validate() for r in batch.runs]
-    stacked = stack_configs(configs + [configs[-1]] * (batch.size - len(configs)))
     _, keys = batch.stacked()
+    return stack_configs(configs + [configs[-1]] * (batch.size - len(configs))), keys, period
+
+
+def probe_batch(batch: Batch, budget: int, probe_steps: int, devices: list) -> dict[str, float]:
+    """Compile time and steady env-steps/s of one batch, and its projected time at `budget` steps per config."""
+    stacked, keys, period = probe_inputs(batch, probe_steps)
     init, chunk = compiled_programs(batch.algo, 1, tuple(devices))
     states = jax.device_get(init(stacked, keys))
     stacked, states = jax.device_put((stacked, states), config_sharding(devices))

@@ -137,11 +137,17 @@ def _replicate(specs: dict[str, Any], out: Path, args: argparse.Namespace, clust
     # compiles for about 2.5 min) and, on the paper's grid, is done before this one's report.
     compiler = CompileQueue() if cluster is None else None
     envs = list(specs)
+
+    def queue(env: str) -> None:
+        if compiler is not None:
+            compiler.queue_sweep(specs[env], out / env, max_batch=args.max_batch)
+
     try:
+        if envs:
+            queue(envs[0])  # before the next environment's, which run_sweep's own queueing would come after
         for i, (env, spec) in enumerate(specs.items()):
-            if compiler is not None:  # this environment's batches (queued already, but the first's), then the next's
-                for queued in envs[i : i + 2]:
-                    compiler.queue_sweep(specs[queued], out / queued, max_batch=args.max_batch)
+            if i + 1 < len(envs):
+                queue(envs[i + 1])
             run_sweep(spec, out / env, max_batch=args.max_batch, progress=not args.no_progress,
                       loggers=make_loggers(args, str(out / env)), cluster=cluster,
                       cluster_parameters=cluster_parameters, compile_queue=compiler)
