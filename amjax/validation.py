@@ -29,8 +29,9 @@ def check_real(
     low: float = -np.inf,
     high: float = np.inf,
     low_inclusive: bool = True,
+    high_inclusive: bool = True,
 ) -> np.ndarray:
-    """Check that `value` (a number or array of numbers) is finite and in [low, high] (or (low, high]).
+    """Check that `value` (a number or array of numbers) is finite and in [low, high] (either end open if told).
 
     Returns it as a float64 NumPy array. Runs on concrete values, before anything is compiled.
     """
@@ -38,12 +39,12 @@ def check_real(
         array = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise TypeError(f"{name}: expected a real number, got {value!r}") from None
-    bracket = "[" if low_inclusive else "("
-    allowed = f"finite numbers in {bracket}{low}, {high}]"
+    allowed = f"finite numbers in {'[' if low_inclusive else '('}{low}, {high}{']' if high_inclusive else ')'}"
     if array.size == 0 or not np.all(np.isfinite(array)):
         raise ValueError(f"{name}: got {value!r}; allowed values: {allowed}")
     below = array < low if low_inclusive else array <= low
-    if np.any(below) or np.any(array > high):
+    above = array > high if high_inclusive else array >= high
+    if np.any(below) or np.any(above):
         raise ValueError(f"{name}: got {value!r}; allowed values: {allowed}")
     return array
 

@@ -55,7 +55,9 @@ QUICK_BUDGETS: dict[str, tuple[int, int]] = {
 # (benchmarks/lunar_lander_transfer.py). Test policy "greedy_control" (docs/eval_policy.md): the greedy policy of a
 # costed run crashes (a memoryless argmax repeats itself on a stale observation); the most probable control with the
 # policy's own measuring draws scored 143 / 87 / 29 re-scored at costs 0.1 / 0.2 / 0.3 on tuning seeds (greedy:
-# -311 to -658), the whole stochastic policy 87 / 83 / 80. A vanilla run is greedy either way.
+# -311 to -658), the whole stochastic policy 87 / 83 / 80. A vanilla run is greedy either way. The initial policy
+# measures with probability 0.9 (`measure_prior`): from the uniform policy's 0.5 PPO kept measuring on about half
+# the steps even at cost 0 (re-scored 127 there on the tuning seeds, 193 with 0.9; docs/eval_policy.md).
 LUNAR_LANDER_PPO: dict[str, object] = {
     "num_envs": 16,
     "num_steps": 1024,
@@ -72,6 +74,7 @@ LUNAR_LANDER_PPO: dict[str, object] = {
     "vf_coef": 0.5,
     "max_grad_norm": 0.5,
     "eval_policy": "greedy_control",
+    "measure_prior": 0.9,
 }
 # PPO on Acrobot-v1 (tuning runs in docs/acrobot.md): Acrobot pays -1 per step, so returns are about -60 to -500
 # and PPO's value clipping (clip_eps = 0.2 in reward units per update) keeps the critic far behind them; the

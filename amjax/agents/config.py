@@ -25,6 +25,7 @@ _BOUNDS = {
     "positive": {"low": 0.0, "low_inclusive": False},
     "nonnegative": {"low": 0.0},
     "unit": {"low": 0.0, "high": 1.0},
+    "probability": {"low": 0.0, "high": 1.0, "low_inclusive": False, "high_inclusive": False},
 }
 
 
@@ -75,8 +76,8 @@ class AgentConfig:
     cost_low: float = 0.0  # traced: with cost_conditioned, the range episodes draw their cost from
     cost_high: float = 0.0
 
-    # The allowed range of each traced field of a subclass: "positive" (> 0), "nonnegative" (>= 0) or "unit"
-    # ([0, 1]); every value must be finite.
+    # The allowed range of each traced field of a subclass: "positive" (> 0), "nonnegative" (>= 0), "unit"
+    # ([0, 1]) or "probability" ((0, 1)); every value must be finite.
     # Static fields that hold network widths (a tuple of layer sizes), declared by the agents' configs.
     WIDTH_FIELDS: ClassVar[tuple[str, ...]] = ()
     TRACED_BOUNDS: ClassVar[dict[str, str]] = {}

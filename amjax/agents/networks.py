@@ -65,31 +65,59 @@ class NarrowDense(nn.Module):
 
     features: int
     kernel_init: nn.initializers.Initializer = nn.initializers.lecun_normal()
+    bias_init: nn.initializers.Initializer = nn.initializers.zeros_init()
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         kernel = self.param("kernel", self.kernel_init, (x.shape[-1], self.features), jnp.float32)
-        bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
+        bias = self.param("bias", self.bias_init, (self.features,), jnp.float32)
         return _narrow_matmul(x, kernel) + bias
 
 
-def policy_head(module: nn.Module, x: jax.Array, distribution: Distribution, dense: type[nn.Module] = nn.Dense) -> Any:
+def prior_logit(prior: Any, dtype: Any = jnp.float32) -> jax.Array:
+    """log(prior / (1 - prior)); `prior` may be traced, and 0.5 gives 0 exactly."""
+    prior = jnp.asarray(prior, dtype)
+    return jnp.log(prior / (1 - prior))
+
+
+def measure_bias(masks: int, controls: int, prior: Any) -> nn.initializers.Initializer:
+    """Initial biases of `masks` x `controls` logits ordered `control + controls * mask` that make each reading
+    measured with probability `prior`, whatever the control: the logits of mask m get popcount(m) x logit(prior)."""
+
+    def init(key: jax.Array, shape: tuple[int, ...], dtype: Any = jnp.float32) -> jax.Array:
+        readings = jnp.array([bin(m).count("1") for m in range(masks)], dtype)
+        return jnp.broadcast_to(readings[:, None] * prior_logit(prior, dtype), (masks, controls)).reshape(shape)
+
+    return init
+
+
+def policy_head(
+    module: nn.Module, x: jax.Array, distribution: Distribution, dense: type[nn.Module] = nn.Dense,
+    measure_prior: Any = 0.5,
+) -> Any:
     """The parameters of `distribution` from features `x`, as layers of `module` (call inside its compact
     `__call__`): logits for a `Categorical` (layer "logits"), `GaussianOutputs` for a `HybridGaussian` (layers
     "mean" and "measure_logit", parameter "log_std", initialised to 0). Small initial weights start every policy
-    near uniform (measuring with probability 1/2)."""
+    near uniform over controls, measuring each reading with probability `measure_prior` (the biases of the measure
+    logits, `measure_bias`; 0.5 by default, the uniform policy)."""
     if isinstance(distribution, Categorical):
+        masks = 2**distribution.readings if distribution.measure else 1
+        controls = distribution.num_actions // masks
         if distribution.factored:  # a control categorical times a measure categorical, as joint logits
-            masks = 2**distribution.readings
-            control = dense(distribution.num_actions // masks, kernel_init=scaled_init(0.01), name="control_logits")(x)
-            measure = dense(masks, kernel_init=scaled_init(0.01), name="measure_logits")(x)
+            control = dense(controls, kernel_init=scaled_init(0.01), name="control_logits")(x)
+            measure = dense(masks, kernel_init=scaled_init(0.01), bias_init=measure_bias(masks, 1, measure_prior),
+                            name="measure_logits")(x)
             return _joint(control, measure)
-        return dense(distribution.num_actions, kernel_init=scaled_init(0.01), name="logits")(x)
+        bias = measure_bias(masks, controls, measure_prior) if distribution.measure else nn.initializers.zeros_init()
+        return dense(distribution.num_actions, kernel_init=scaled_init(0.01), bias_init=bias, name="logits")(x)
     mean = dense(distribution.controls, kernel_init=scaled_init(0.01), name="mean")(x)
     log_std = module.param("log_std", nn.initializers.zeros_init(), (distribution.controls,), jnp.float32)
     measure_logit = None
     if distribution.measure:
-        measure_logit = dense(distribution.readings, kernel_init=scaled_init(0.01), name="measure_logit")(x)
+        measure_logit = dense(distribution.readings, kernel_init=scaled_init(0.01),
+                              bias_init=lambda key, shape, dtype=jnp.float32: jnp.full(
+                                  shape, prior_logit(measure_prior, dtype)),
+                              name="measure_logit")(x)
         measure_logit = measure_logit if distribution.readings > 1 else measure_logit[..., 0]
     return GaussianOutputs(mean, jnp.broadcast_to(log_std, mean.shape), measure_logit)
 
@@ -101,12 +129,13 @@ class ActorCritic(nn.Module):
     hidden: Sequence[int] = (64, 64)
     activation: str = "tanh"
     shared: bool = False
+    measure_prior: Any = 0.5  # the initial policy's probability of measuring (`policy_head`)
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> tuple[Any, jax.Array]:
         actor = MLP(self.hidden, self.activation, name="actor_torso")(obs)
         critic = actor if self.shared else MLP(self.hidden, self.activation, name="critic_torso")(obs)
-        policy = policy_head(self, actor, self.distribution, dense=NarrowDense)
+        policy = policy_head(self, actor, self.distribution, dense=NarrowDense, measure_prior=self.measure_prior)
         value = nn.Dense(1, kernel_init=scaled_init(1.0), name="value")(critic)
         return policy, jnp.squeeze(value, -1)
 
@@ -258,10 +287,11 @@ class ActorCriticHeads(nn.Module):
     """A policy head for `distribution` and a state value from shared features."""
 
     distribution: Distribution
+    measure_prior: Any = 0.5
 
     @nn.compact
     def __call__(self, x: jax.Array) -> tuple[Any, jax.Array]:
-        policy = policy_head(self, x, self.distribution, dense=NarrowDense)
+        policy = policy_head(self, x, self.distribution, dense=NarrowDense, measure_prior=self.measure_prior)
         value = nn.Dense(1, kernel_init=scaled_init(1.0), name="value")(x)
         return policy, jnp.squeeze(value, -1)
 
@@ -300,10 +330,11 @@ class RecurrentActorCritic(nn.Module):
     rnn_size: int = 64
     cell: str = "gru"
     activation: str = "tanh"
+    measure_prior: Any = 0.5
 
     def setup(self) -> None:
         self.core = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)
-        self.heads = ActorCriticHeads(self.distribution)
+        self.heads = ActorCriticHeads(self.distribution, self.measure_prior)
 
     def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, tuple[jax.Array, jax.Array]]:
         carry, x = self.core(carry, obs, first)

@@ -61,7 +61,8 @@ class PPOState:
 def network(config: PPOConfig, action_space: Any) -> ActorCritic:
     distribution = for_action_space(action_space, measure=not config.vanilla, readings=config.num_instruments,
                                     factored=config.factored_masks > 0)
-    return ActorCritic(distribution, tuple(config.hidden), config.activation, config.shared_network)
+    return ActorCritic(distribution, tuple(config.hidden), config.activation, config.shared_network,
+                        config.measure_prior)
 
 
 def init(config: PPOConfig, setup: Setup, key: jax.Array) -> PPOState:

@@ -52,6 +52,10 @@ class PPOBaseConfig(AgentConfig):
     ent_coef: float = 0.01
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
+    # The initial policy's probability of measuring (each reading, with instruments), whatever the control: the
+    # measure logits' initial biases (networks.policy_head). 0.5 is the uniform policy. Near 1 the agent starts as
+    # the always-measure baseline and learns where it can skip (docs/eval_policy.md). Ignored by vanilla runs.
+    measure_prior: float = 0.5
 
     WIDTH_FIELDS: ClassVar[tuple[str, ...]] = ("hidden",)
     ACTION_SPACES: ClassVar[tuple[str, ...]] = ("Discrete", "Box")  # categorical or Gaussian + Bernoulli head
@@ -63,6 +67,7 @@ class PPOBaseConfig(AgentConfig):
         "ent_coef": "nonnegative",
         "vf_coef": "nonnegative",
         "max_grad_norm": "positive",
+        "measure_prior": "probability",
     }
 
     def steps_per_update(self) -> int:

@@ -78,7 +78,8 @@ class PPORNNState:
 def network(config: PPORNNConfig, action_space: Any) -> RecurrentActorCritic:
     distribution = for_action_space(action_space, measure=not config.vanilla, readings=config.num_instruments,
                                     factored=config.factored_masks > 0)
-    return RecurrentActorCritic(distribution, tuple(config.hidden), config.rnn_size, config.cell, config.activation)
+    return RecurrentActorCritic(distribution, tuple(config.hidden), config.rnn_size, config.cell, config.activation,
+                                config.measure_prior)
 
 
 def init(config: PPORNNConfig, setup: Setup, key: jax.Array) -> PPORNNState:

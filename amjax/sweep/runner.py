@@ -79,7 +79,7 @@ def _check_memory(batches: Sequence[Batch], memory: int) -> None:
         if key not in sizes:
             configs, keys = batch.stacked()
             shapes = jax.eval_shape(
-                lambda c, k, algo=batch.algo: jax.lax.map(lambda ck: init_run(algo, *ck), (c, k)), configs, keys)
+                jax.vmap(lambda c, k, algo=batch.algo: init_run(algo, c, k)), configs, keys)
             sizes[key] = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes))
         if 3 * sizes[key] > memory:
             raise SweepTooLargeError(

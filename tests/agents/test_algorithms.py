@@ -133,7 +133,7 @@ def _compiled(name):
     """One jitted program per algorithm for single runs, one for vmapped batches (compiled once per shape)."""
     algo = ALGOS[name]
     alone = jax.jit(lambda c, k: run_evals(algo, c, init_run(algo, c, k), c.num_evals))
-    init = jax.jit(lambda cs, ks: jax.lax.map(lambda ck: init_run(algo, *ck), (cs, ks)))
+    init = jax.jit(jax.vmap(lambda c, k: init_run(algo, c, k)))
     batched = jax.jit(jax.vmap(lambda c, s: run_evals(algo, c, s, c.num_evals)))
     return alone, lambda configs, keys: batched(configs, init(configs, keys))
 

@@ -34,7 +34,7 @@ def train_rows(algo, configs: list, seeds: list[int]):
     """Train `configs` (one per seed in `seeds`) as one vmapped program; their `EvalRow`s [configs, evals]."""
     stacked = stack_configs(configs)
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
-    states = jax.jit(lambda cs, ks: jax.lax.map(lambda ck: init_run(algo, *ck), (cs, ks)))(stacked, keys)
+    states = jax.jit(jax.vmap(lambda c, k: init_run(algo, c, k)))(stacked, keys)
     _, rows = jax.jit(jax.vmap(lambda c, s: run_evals(algo, c, s, c.num_evals)))(stacked, states)
     return rows
 

@@ -67,3 +67,51 @@ def test_measure_head_is_checked(config):
 def test_box_control_needs_no_factored_head():
     with pytest.raises(ValueError, match="already has a measure entry"):
         PPOConfig(env_id="Pendulum-v1", measure_head="factored").validate()
+
+
+def _initial_measure_probability(dist, prior, readings=1):
+    """Mean over observations of the initial policy's probability of measuring each reading."""
+    net = ActorCritic(dist, hidden=(8,), measure_prior=prior)
+    obs = jax.random.normal(jax.random.key(0), (256, 5))
+    outputs, _ = net.apply(net.init(jax.random.key(1), obs), obs)
+    if isinstance(dist, Categorical):
+        masks = 2**readings
+        probs = jax.nn.softmax(outputs).reshape(256, masks, -1).sum(-1)  # [obs, mask]
+        bits = np.array([[(m >> r) & 1 for r in range(readings)] for m in range(masks)])
+        return np.asarray(probs @ bits).mean(0)  # P(reading r measured)
+    return np.asarray(jax.nn.sigmoid(outputs.measure_logit)).reshape(256, -1).mean(0)
+
+
+@pytest.mark.parametrize("prior", [0.2, 0.9])
+@pytest.mark.parametrize("case", ["joint", "factored", "instruments", "box", "box_instruments"])
+def test_measure_prior_sets_the_initial_probability_of_measuring(case, prior):
+    """Every policy head starts measuring each reading with probability `measure_prior` (small initial weights),
+    and 0.5 gives exactly the zero biases of the uniform policy."""
+    readings = 2 if "instruments" in case else 1
+    if case.startswith("box"):
+        dist = for_action_space(spaces.Box(-1.0, 1.0, (1 + readings,)), measure=True, readings=readings)
+    else:
+        dist = for_action_space(spaces.Discrete(3 * 2**readings), measure=True, readings=readings,
+                                factored=case == "factored")
+    np.testing.assert_allclose(_initial_measure_probability(dist, prior, readings), prior, atol=0.02)
+    net = ActorCritic(dist, hidden=(8,))
+    params = net.init(jax.random.key(1), jnp.zeros((1, 5)))["params"]
+    heads = [layer for name, layer in params.items() if "torso" not in name and isinstance(layer, dict)]
+    assert heads and all(np.all(np.asarray(layer["bias"]) == 0.0) for layer in heads)
+
+
+def test_measure_prior_leaves_vanilla_runs_and_controls_alone():
+    """A vanilla head has no measure biases to set; with a prior the controls stay uniform given the measure bit."""
+    vanilla = ActorCritic(for_action_space(spaces.Discrete(3), measure=False), hidden=(8,), measure_prior=0.9)
+    params = vanilla.init(jax.random.key(1), jnp.zeros((1, 5)))["params"]
+    np.testing.assert_array_equal(params["logits"]["bias"], 0.0)
+    dist = for_action_space(spaces.Discrete(6), measure=True)
+    params = ActorCritic(dist, hidden=(8,), measure_prior=0.9).init(jax.random.key(1), jnp.zeros((1, 5)))["params"]
+    np.testing.assert_allclose(params["logits"]["bias"], [0, 0, 0] + [np.log(9)] * 3, rtol=1e-6)
+
+
+@pytest.mark.parametrize("config", [PPOConfig, PPORNNConfig])
+@pytest.mark.parametrize("bad", [0.0, 1.0, 1.5, float("nan")])
+def test_measure_prior_is_checked(config, bad):
+    with pytest.raises(ValueError, match=r"measure_prior: got .*allowed values: finite numbers in \(0.0, 1.0\)"):
+        config(measure_prior=bad).validate()

@@ -60,7 +60,7 @@ def _programs(name):
     """(alone, batched) jitted programs of an algorithm, as the sweep runner builds them."""
     algo = ALGORITHMS[name]
     alone = jax.jit(lambda c, k: run_evals(algo, c, init_run(algo, c, k), c.num_evals))
-    init = jax.jit(lambda cs, ks: jax.lax.map(lambda ck: init_run(algo, *ck), (cs, ks)))
+    init = jax.jit(jax.vmap(lambda c, k: init_run(algo, c, k)))
     batched = jax.jit(jax.vmap(lambda c, s: run_evals(algo, c, s, c.num_evals)))
     return alone, lambda configs, keys: batched(configs, init(configs, keys))
 
