@@ -15,11 +15,16 @@ threshold (``xla_cpu_options``) in ``XLA_FLAGS``, which XLA reads once, at the f
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import warnings
+from collections.abc import Callable
+from typing import Any
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 
 def usable_cores() -> int:
@@ -123,3 +128,49 @@ def use_all_cores() -> int:
         return int(re.search(r"device_count=(\d+)", os.environ["XLA_FLAGS"]).group(1))
     jax.config.update("jax_num_cpu_devices", usable_cores())
     return usable_cores()
+
+
+def jit_one_kernel(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``jax.jit(fn)`` compiled as one XLA CPU kernel, for a small program called one call at a time from Python.
+
+    XLA's CPU runtime launches a program's fused operations one by one, a few hundred ns each: one LunarLander-v3
+    step called from Python spends most of its time on its ~900 launches, not its arithmetic. Here ``fn`` is the
+    body of a one-trip ``while`` loop whose trip count XLA cannot see (it is an argument), which the small-loop
+    option (``xla_cpu_options``) compiles into a single kernel. Results equal ``jax.jit(fn)``'s to float rounding
+    (the code is generated apart). No gain for programs whose loop XLA will not merge: over ``SMALL_LOOP_BYTES``
+    per call, or holding dots, scatters or custom calls; and none without the option (``AMJAX_XLA_OPTIONS=0``).
+    """
+    key_impls: list[Any] = []  # the PRNG implementation of each typed-key output, recorded when `fn` is traced
+
+    def output_leaves(*args: Any) -> list[jax.Array]:
+        leaves = jax.tree.leaves(fn(*args))
+        key_impls[:] = [jax.random.key_impl(x) if _is_key(x) else None for x in leaves]
+        return [jax.random.key_data(x) if _is_key(x) else x for x in leaves]  # a loop carries no typed keys
+
+    def looped(trips: jax.Array, *args: Any) -> Any:
+        tree = jax.tree.structure(jax.eval_shape(fn, *args))
+
+        def body(i: jax.Array, carry: Any) -> Any:
+            # The barrier ties the inputs to the counter, so XLA cannot hoist `fn` out of the loop.
+            _, inputs = jax.lax.optimization_barrier((i, carry[0]))
+            return carry[0], output_leaves(*inputs)
+
+        zeros = [jnp.zeros(s.shape, s.dtype) for s in jax.eval_shape(output_leaves, *args)]
+        leaves = jax.lax.fori_loop(0, trips, body, (args, zeros))[1]
+        leaves = [x if impl is None else jax.random.wrap_key_data(x, impl=impl)
+                  for x, impl in zip(leaves, key_impls, strict=True)]
+        return jax.tree.unflatten(tree, leaves)
+
+    compiled = jax.jit(looped)
+    one = np.int32(1)
+
+    @functools.wraps(fn)
+    def call(*args: Any) -> Any:
+        return compiled(one, *args)
+
+    call.lower = lambda *args: compiled.lower(one, *args)  # for inspection, as a jitted function's
+    return call
+
+
+def _is_key(x: Any) -> bool:
+    return jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)

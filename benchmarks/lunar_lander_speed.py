@@ -7,7 +7,8 @@ Random actions, auto-reset included in both. Gymnasium: one env in a Python loop
 episodes cut at 1000 steps as LunarLander-v3's TimeLimit does). The port: `env.step` vmapped over the envs inside
 a jitted `lax.scan`, the envs split over the CPU devices with `jax.shard_map` (one device per core, as
 `amjax.use_all_cores()` sets up and the sweep runner uses; default `check_vma`). Also one env's jitted step called
-from Python, one call per step that splits the carried key (the path of notebooks and the Gymnasium bridge). The
+from Python, one call per step that splits the carried key (the path of notebooks and the Gymnasium bridge), with
+`jax.jit` and compiled as one kernel (`amjax.cores.jit_one_kernel`, as the bridge does). The
 programs are compiled with the XLA CPU options `import amjax` sets (`amjax.cores.xla_cpu_options`: small loops as
 single kernels, reductions in XLA; run with `AMJAX_XLA_OPTIONS=0` to time XLA's defaults). The port's timed run
 starts after a burn-in of `--burn-in` steps (500 by default) from the reset, so its envs are spread over their
@@ -40,7 +41,7 @@ import amjax
 
 amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
 
-from amjax.cores import REDUCTIONS_IN_XLA  # noqa: E402
+from amjax.cores import REDUCTIONS_IN_XLA, jit_one_kernel  # noqa: E402
 from amjax.envs.lunar_lander import LunarLander  # noqa: E402
 from amjax.envs.lunar_lander.env import heuristic_action  # noqa: E402
 from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander  # noqa: E402
@@ -141,17 +142,18 @@ def step_compile_seconds(env: LunarLander, n_envs: int) -> float:
     return time.perf_counter() - start
 
 
-def single_env_rate(env: LunarLander, n_steps: int) -> float:
+def single_env_rate(env: LunarLander, n_steps: int, one_kernel: bool) -> float:
     """Steps/s of one env's jitted step called from Python (random actions, auto-reset): one call per step that
-    splits the carried key and steps, as the Gymnasium bridge (`amjax.wrappers.gymnasium`) does."""
+    splits the carried key and steps, as the Gymnasium bridge (`amjax.wrappers.gymnasium`) does; `one_kernel`:
+    compiled as one kernel (`amjax.cores.jit_one_kernel`, the bridge's way), else with `jax.jit`."""
     params = env.default_params
 
-    @jax.jit
-    def step(key, state, action):
+    def raw_step(key, state, action):
         key, key_step = jax.random.split(key)
         obs, state, reward, terminated, truncated, _ = env.step(key_step, state, action, params)
         return key, state, obs, reward, terminated | truncated
 
+    step = jit_one_kernel(raw_step) if one_kernel else jax.jit(raw_step)
     key = jax.random.key(0)
     _, state = jax.jit(env.reset)(key, params)
     jax.block_until_ready(step(key, state, np.int32(0)))
@@ -190,7 +192,8 @@ def main() -> None:
     singles, step_compiles, rows = {}, {}, []
     for solver in args.solvers:
         env = LunarLander(exact_free_flight=solver == "exact_free_flight", jump_sweeps=solver == "jump_sweeps")
-        singles[solver] = single_env_rate(env, args.single_env_steps)
+        for one_kernel in (False, True):
+            singles[solver, one_kernel] = single_env_rate(env, args.single_env_steps, one_kernel)
         step_compiles[solver] = [step_compile_seconds(env, 1024) for _ in range(args.step_compiles)]
         print(f"{solver}: one vmapped step at 1,024 envs compiles in "
               f"{', '.join(f'{t:.1f}' for t in step_compiles[solver])} s", flush=True)
@@ -218,9 +221,10 @@ def main() -> None:
         "|---|---|---|---|---|---|---|---|",
         f"| Gymnasium LunarLander-v3 (C++ Box2D), Python loop | 1 | 1 core | {gym:,.0f} | 1.0x | - | - | - |",
     ]
-    for solver, single in singles.items():
-        lines.append(f"| port ({SOLVERS[solver]}), jitted step called from Python (key split inside) | 1 | 1 "
-                     f"| {single:,.0f} | {single / gym:.2f}x | - | - | - |")
+    for (solver, one_kernel), single in singles.items():
+        how = "compiled as one kernel (`jit_one_kernel`, the Gymnasium bridge)" if one_kernel else "`jax.jit`"
+        lines.append(f"| port ({SOLVERS[solver]}), one env's step called from Python, {how} (key split inside) "
+                     f"| 1 | 1 | {single:,.0f} | {single / gym:.2f}x | - | - | - |")
     for r in rows:
         actions = "" if r["policy"] == "random" else ", Gymnasium's heuristic controller"
         actions += ", compiled with `amjax.cores.REDUCTIONS_IN_XLA`" if r["options"] else ""

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amjax.cores import REDUCTIONS_IN_XLA, SMALL_LOOP_BYTES, XLA_CPU_FLAGS, xla_cpu_options
+from amjax.cores import REDUCTIONS_IN_XLA, SMALL_LOOP_BYTES, XLA_CPU_FLAGS, jit_one_kernel, xla_cpu_options
 
 LOOPS = f"xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
 
@@ -61,6 +61,34 @@ def test_lunar_lander_loops_are_single_kernels():
     # The velocity sweeps (joints alone, and every constraint for the compacted envs on the ground), the position
     # iterations, the reset's physics step: each loop one kernel.
     assert text.count('xla_cpu_small_call="true"') >= 6
+
+
+def test_jit_one_kernel_compiles_a_lunar_lander_step_as_one_kernel_with_jits_results():
+    """One env's step (typed keys in and out, a state pytree, an info dict): the program's entry holds one kernel,
+    the loop, and every output equals `jax.jit`'s to float rounding, step after step."""
+    from amjax.envs.lunar_lander import LunarLander
+
+    env = LunarLander()
+    params = env.default_params
+
+    def step(key, state, action):
+        key, key_step = jax.random.split(key)
+        obs, state, reward, terminated, truncated, info = env.step(key_step, state, action, params)
+        return key, state, (obs, reward, terminated | truncated), info
+
+    plain, one = jax.jit(step), jit_one_kernel(step)
+    key = jax.random.key(3)
+    _, state = jax.jit(env.reset)(key, params)
+    text = one.lower(key, state, np.int32(0)).compile().as_text()
+    entry = text[text.index("ENTRY"):]
+    assert entry.count('xla_cpu_small_call="true"') == 1
+    for action in np.random.default_rng(0).integers(0, 4, 60).astype(np.int32):
+        want, got = plain(key, state, action), one(key, state, action)
+        assert jax.tree.structure(got) == jax.tree.structure(want)
+        assert jnp.array_equal(jax.random.key_data(got[0]), jax.random.key_data(want[0]))
+        for a, b in zip(jax.tree.leaves(got[1:]), jax.tree.leaves(want[1:]), strict=True):
+            np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), rtol=1e-4, atol=1e-4)
+        key, state = want[0], want[1]
 
 
 def _python(code: str, **env: str) -> subprocess.CompletedProcess:

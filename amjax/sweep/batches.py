@@ -73,7 +73,7 @@ def compiled_programs(
     # Initialisation is vmapped like the chunk (the networks' initialisers are QR-free: no batched linear algebra,
     # so no jaxlib CPU deadlock, research notes). A loop over configurations (lax.map) would be compiled as one
     # kernel under amjax's small-loop option, body and all: 47 s instead of 17.5 for LunarLander-v3's Dueling DQN,
-    # whose initialisation steps the envs (docs/replicate.md).
+    # whose initialisation steps the envs (docs/lunar_lander.md, "Initialisation vmapped").
     init = jax.jit(jax.vmap(lambda config, key: init_run(algo, config, key)))
     batched_chunk = jax.vmap(lambda config, state: run_evals(algo, config, state, chunk_evals))
     # Shardings pinned on both sides, so the states a chunk returns (zero-size arrays included, which XLA would

@@ -13,6 +13,7 @@ modules only this one imports it.
 
 from __future__ import annotations
 
+import functools
 import re
 from functools import partial
 from typing import Any, ClassVar
@@ -25,6 +26,7 @@ from gymnasium import spaces as gym_spaces
 from gymnasium.envs.registration import EnvSpec
 from gymnax.environments import spaces as gymnax_spaces
 
+from amjax.cores import jit_one_kernel
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 from amjax.wrappers.active_measure import MODES, REWARD_TIMINGS, UNBOUNDED, check_extra_obs
 from amjax.wrappers.instruments import check_instrument_values, check_instruments, feature_owner
@@ -398,8 +400,7 @@ def _raw_step(
     return obs, state, key, reward, terminated, truncated, info
 
 
-@partial(jax.jit, static_argnums=0)
-def _step(
+def _packed_step(
     env: Any, key: jax.Array, state: Any, action: jax.Array, params: Any
 ) -> tuple[Any, Any, jax.Array, jax.Array, dict[Any, Any]]:
     """`_raw_step` with reward, terminated, truncated and the scalar info values packed in one
@@ -410,6 +411,13 @@ def _step(
     packed = jnp.stack([jnp.asarray(value, jnp.float32) for value in scalars])
     rest = {name: value for name, value in info.items() if name not in packed_keys}
     return obs, state, key, packed, rest
+
+
+@functools.cache
+def _step(env: Any) -> Any:
+    """`_packed_step` of `env`, compiled as one kernel (`amjax.cores.jit_one_kernel`: one env's step is small
+    operations, each launched apart otherwise; LunarLander-v3's step from Python runs about 1.5x faster)."""
+    return jit_one_kernel(partial(_packed_step, env))
 
 
 class GymnasiumEnv(gymnasium.Env[Any, Any]):
@@ -511,7 +519,7 @@ class GymnasiumEnv(gymnasium.Env[Any, Any]):
                 "step: no episode is running (call reset() first, and again after an episode terminated or truncated)"
             )
         action = self._jax_action(check_action(self.action_space, action))
-        obs, state, key, packed, rest = _step(self.gymnax_env, self._key, self._state, action, self.params)
+        obs, state, key, packed, rest = _step(self.gymnax_env)(self._key, self._state, action, self.params)
         obs, packed, rest = jax.device_get((obs, packed, rest))
         packed = packed.tolist()
         terminated, truncated = bool(packed[1]), bool(packed[2])
