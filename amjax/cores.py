@@ -140,16 +140,14 @@ def jit_one_kernel(fn: Callable[..., Any]) -> Callable[..., Any]:
     (the code is generated apart). No gain for programs whose loop XLA will not merge: over ``SMALL_LOOP_BYTES``
     per call, or holding dots, scatters or custom calls; and none without the option (``AMJAX_XLA_OPTIONS=0``).
     """
-    key_impls: list[Any] = []  # the PRNG implementation of each typed-key output, recorded when `fn` is traced
+    traced: dict[str, Any] = {}  # the output's tree and each typed-key leaf's PRNG implementation, set when traced
 
     def output_leaves(*args: Any) -> list[jax.Array]:
-        leaves = jax.tree.leaves(fn(*args))
-        key_impls[:] = [jax.random.key_impl(x) if _is_key(x) else None for x in leaves]
+        leaves, traced["tree"] = jax.tree.flatten(fn(*args))
+        traced["key_impls"] = [jax.random.key_impl(x) if _is_key(x) else None for x in leaves]
         return [jax.random.key_data(x) if _is_key(x) else x for x in leaves]  # a loop carries no typed keys
 
     def looped(trips: jax.Array, *args: Any) -> Any:
-        tree = jax.tree.structure(jax.eval_shape(fn, *args))
-
         def body(i: jax.Array, carry: Any) -> Any:
             # The barrier ties the inputs to the counter, so XLA cannot hoist `fn` out of the loop.
             _, inputs = jax.lax.optimization_barrier((i, carry[0]))
@@ -158,8 +156,8 @@ def jit_one_kernel(fn: Callable[..., Any]) -> Callable[..., Any]:
         zeros = [jnp.zeros(s.shape, s.dtype) for s in jax.eval_shape(output_leaves, *args)]
         leaves = jax.lax.fori_loop(0, trips, body, (args, zeros))[1]
         leaves = [x if impl is None else jax.random.wrap_key_data(x, impl=impl)
-                  for x, impl in zip(leaves, key_impls, strict=True)]
-        return jax.tree.unflatten(tree, leaves)
+                  for x, impl in zip(leaves, traced["key_impls"], strict=True)]
+        return jax.tree.unflatten(traced["tree"], leaves)
 
     compiled = jax.jit(looped)
     one = np.int32(1)
