@@ -15,7 +15,9 @@ threshold (``xla_cpu_options``) in ``XLA_FLAGS``, which XLA reads once, at the f
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import math
 import os
 import re
 import warnings
@@ -168,6 +170,91 @@ def jit_one_kernel(fn: Callable[..., Any]) -> Callable[..., Any]:
 
     call.lower = lambda *args: compiled.lower(one, *args)  # for inspection, as a jitted function's
     return call
+
+
+@dataclasses.dataclass(frozen=True)
+class TreeLayout:
+    """Where each leaf of a pytree lies in one uint32 vector: `pack` and `unpack`, bit-exact and traceable.
+
+    A jitted call pays for every array it takes and returns (about 2 us each on CPU): one env's state, 20-odd
+    leaves in and out, costs more than a LunarLander-v3 step compiled as one kernel. A caller that steps one
+    env from Python (the Gymnasium bridge) keeps the state packed between calls and unpacks it inside the
+    program. Leaves of 4 or 8 bytes are bit-cast; bools, narrower integers and 16-bit floats take one word
+    each; typed PRNG keys travel as their key data. Build it with `TreeLayout.of(example)`.
+    """
+
+    treedef: Any
+    shapes: tuple[tuple[int, ...], ...]  # of each leaf (of its key data for a key)
+    dtypes: tuple[np.dtype, ...]  # of each leaf (uint32 for a key's data)
+    key_impls: tuple[Any, ...]  # each leaf's PRNG implementation, None where it is not a typed key
+
+    @classmethod
+    def of(cls, example: Any) -> TreeLayout:
+        """The layout of `example`, a pytree of arrays or `jax.ShapeDtypeStruct`s."""
+        leaves, treedef = jax.tree.flatten(example)
+        impls: list[Any] = []
+
+        def key_data(*leaves: Any) -> list[Any]:
+            impls.extend(jax.random.key_impl(x) if _is_key(x) else None for x in leaves)
+            return [jax.random.key_data(x) if _is_key(x) else x for x in leaves]
+
+        data = jax.eval_shape(key_data, *leaves)
+        for x in data:
+            if not any(jnp.issubdtype(x.dtype, kind) for kind in (jnp.bool_, jnp.integer, jnp.floating)):
+                raise TypeError(f"TreeLayout: a leaf of dtype {x.dtype}; allowed: bool, integer and floating leaves, "
+                                "and typed PRNG keys")
+        return cls(treedef, tuple(tuple(x.shape) for x in data), tuple(np.dtype(x.dtype) for x in data),
+                   tuple(impls))
+
+    @property
+    def size(self) -> int:
+        """Words (uint32) in the packed vector."""
+        return sum(_words(shape, dtype) for shape, dtype in zip(self.shapes, self.dtypes, strict=True))
+
+    def pack(self, tree: Any) -> jax.Array:
+        """`tree` (laid out as the example) as one uint32 vector of `size` words."""
+        leaves = self.treedef.flatten_up_to(tree)
+        parts = [_to_words(jax.random.key_data(x) if impl is not None else jnp.asarray(x, dtype))
+                 for x, dtype, impl in zip(leaves, self.dtypes, self.key_impls, strict=True)]
+        return jnp.concatenate(parts) if parts else jnp.zeros(0, jnp.uint32)
+
+    def unpack(self, words: jax.Array) -> Any:
+        """The pytree that `pack` made `words` from."""
+        leaves, start = [], 0
+        for shape, dtype, impl in zip(self.shapes, self.dtypes, self.key_impls, strict=True):
+            stop = start + _words(shape, dtype)
+            leaf = _from_words(words[start:stop], shape, dtype)
+            leaves.append(leaf if impl is None else jax.random.wrap_key_data(leaf, impl=impl))
+            start = stop
+        return jax.tree.unflatten(self.treedef, leaves)
+
+
+def _words(shape: tuple[int, ...], dtype: np.dtype) -> int:
+    return math.prod(shape) * max(1, dtype.itemsize // 4)
+
+
+def _to_words(x: jax.Array) -> jax.Array:
+    if x.dtype.itemsize >= 4:  # 8-byte leaves (x64) become two words each
+        return jax.lax.bitcast_convert_type(x, jnp.uint32).ravel()
+    if jnp.issubdtype(x.dtype, jnp.floating):  # float16, bfloat16
+        x = jax.lax.bitcast_convert_type(x, jnp.uint16)
+    elif jnp.issubdtype(x.dtype, jnp.signedinteger):
+        return jax.lax.bitcast_convert_type(x.astype(jnp.int32), jnp.uint32).ravel()
+    return x.astype(jnp.uint32).ravel()
+
+
+def _from_words(words: jax.Array, shape: tuple[int, ...], dtype: np.dtype) -> jax.Array:
+    if dtype.itemsize >= 4:
+        per_leaf = dtype.itemsize // 4
+        return jax.lax.bitcast_convert_type(words.reshape(shape + ((per_leaf,) if per_leaf > 1 else ())), dtype)
+    words = words.reshape(shape)
+    if dtype == np.bool_:
+        return words != 0
+    if jnp.issubdtype(dtype, jnp.floating):
+        return jax.lax.bitcast_convert_type(words.astype(jnp.uint16), dtype)
+    if jnp.issubdtype(dtype, jnp.signedinteger):
+        return jax.lax.bitcast_convert_type(words, jnp.int32).astype(dtype)
+    return words.astype(dtype)
 
 
 def _is_key(x: Any) -> bool:

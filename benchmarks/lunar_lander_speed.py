@@ -8,7 +8,8 @@ episodes cut at 1000 steps as LunarLander-v3's TimeLimit does). The port: `env.s
 a jitted `lax.scan`, the envs split over the CPU devices with `jax.shard_map` (one device per core, as
 `amjax.use_all_cores()` sets up and the sweep runner uses; default `check_vma`). Also one env's jitted step called
 from Python, one call per step that splits the carried key (the path of notebooks and the Gymnasium bridge), with
-`jax.jit` and compiled as one kernel (`amjax.cores.jit_one_kernel`, as the bridge does). The
+`jax.jit`, compiled as one kernel (`amjax.cores.jit_one_kernel`), and as one kernel with the key and state carried
+as one packed vector (`amjax.cores.TreeLayout`), as the bridge does; and the bridge itself (`to_gymnasium`). The
 programs are compiled with the XLA CPU options `import amjax` sets (`amjax.cores.xla_cpu_options`: small loops as
 single kernels, reductions in XLA; run with `AMJAX_XLA_OPTIONS=0` to time XLA's defaults). The port's timed run
 starts after a burn-in of `--burn-in` steps (500 by default) from the reset, so its envs are spread over their
@@ -41,10 +42,11 @@ import amjax
 
 amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
 
-from amjax.cores import REDUCTIONS_IN_XLA, jit_one_kernel  # noqa: E402
+from amjax.cores import REDUCTIONS_IN_XLA, TreeLayout, jit_one_kernel  # noqa: E402
 from amjax.envs.lunar_lander import LunarLander  # noqa: E402
 from amjax.envs.lunar_lander.env import heuristic_action  # noqa: E402
 from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander  # noqa: E402
+from amjax.wrappers.gymnasium import to_gymnasium  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
 from benchmarks.throughput.report import save_table  # noqa: E402
@@ -142,26 +144,64 @@ def step_compile_seconds(env: LunarLander, n_envs: int) -> float:
     return time.perf_counter() - start
 
 
-def single_env_rate(env: LunarLander, n_steps: int, one_kernel: bool) -> float:
-    """Steps/s of one env's jitted step called from Python (random actions, auto-reset): one call per step that
-    splits the carried key and steps, as the Gymnasium bridge (`amjax.wrappers.gymnasium`) does; `one_kernel`:
-    compiled as one kernel (`amjax.cores.jit_one_kernel`, the bridge's way), else with `jax.jit`."""
+SINGLE_ENV_PATHS = {
+    "jit": "`jax.jit`",
+    "one_kernel": "compiled as one kernel (`jit_one_kernel`)",
+    "packed": "one kernel, key and state carried packed (`TreeLayout`, as the Gymnasium bridge)",
+    "bridge": "the Gymnasium bridge (`to_gymnasium`: checks, results copied to NumPy every step)",
+}
+
+
+def single_env_rate(env: LunarLander, n_steps: int, path: str) -> float:
+    """Steps/s of one env stepped from Python, random actions, one call per step (see `SINGLE_ENV_PATHS`).
+
+    "jit", "one_kernel" and "packed": a jitted step that splits the carried key and steps (auto-reset inside), the
+    results left on the device; "bridge": `GymnasiumEnv.step`, reset after each episode."""
     params = env.default_params
+    actions = np.random.default_rng(0).integers(0, 4, n_steps).astype(np.int32)
+    if path == "bridge":
+        gym_env = to_gymnasium(env, params, seed=0)
+        gym_env.reset()
+
+        def run(steps: int) -> float:
+            start = time.perf_counter()
+            for i in range(steps):
+                _, _, terminated, truncated, _ = gym_env.step(int(actions[i]))
+                if terminated or truncated:
+                    gym_env.reset()
+            return steps / (time.perf_counter() - start)
+
+        run(min(n_steps, 100))  # compiles the step
+        return run(n_steps)
 
     def raw_step(key, state, action):
         key, key_step = jax.random.split(key)
         obs, state, reward, terminated, truncated, _ = env.step(key_step, state, action, params)
         return key, state, obs, reward, terminated | truncated
 
-    step = jit_one_kernel(raw_step) if one_kernel else jax.jit(raw_step)
     key = jax.random.key(0)
     _, state = jax.jit(env.reset)(key, params)
-    jax.block_until_ready(step(key, state, np.int32(0)))
-    actions = np.random.default_rng(0).integers(0, 4, n_steps).astype(np.int32)
+    if path == "packed":
+        layout = TreeLayout.of((key, state))
+
+        def packed_step(carry, action):
+            key, state, obs, reward, done = raw_step(*layout.unpack(carry), action)
+            return layout.pack((key, state)), obs, reward, done
+
+        step, carry = jit_one_kernel(packed_step), jax.jit(layout.pack)((key, state))
+    else:
+        one_call = jit_one_kernel(raw_step) if path == "one_kernel" else jax.jit(raw_step)
+
+        def step(carry, action):
+            key, state, *out = one_call(*carry, action)
+            return (key, state), *out
+
+        carry = (key, state)
+    jax.block_until_ready(step(carry, np.int32(0)))
     start = time.perf_counter()
     for i in range(n_steps):
-        key, state, _, _, _ = step(key, state, actions[i])
-    jax.block_until_ready(state)
+        carry, *_ = step(carry, actions[i])
+    jax.block_until_ready(carry)
     return n_steps / (time.perf_counter() - start)
 
 
@@ -192,8 +232,9 @@ def main() -> None:
     singles, step_compiles, rows = {}, {}, []
     for solver in args.solvers:
         env = LunarLander(exact_free_flight=solver == "exact_free_flight", jump_sweeps=solver == "jump_sweeps")
-        for one_kernel in (False, True):
-            singles[solver, one_kernel] = single_env_rate(env, args.single_env_steps, one_kernel)
+        for path in SINGLE_ENV_PATHS:
+            singles[solver, path] = single_env_rate(env, args.single_env_steps, path)
+            print(f"{solver}: one env, {path}: {singles[solver, path]:,.0f} steps/s", flush=True)
         step_compiles[solver] = [step_compile_seconds(env, 1024) for _ in range(args.step_compiles)]
         print(f"{solver}: one vmapped step at 1,024 envs compiles in "
               f"{', '.join(f'{t:.1f}' for t in step_compiles[solver])} s", flush=True)
@@ -221,9 +262,8 @@ def main() -> None:
         "|---|---|---|---|---|---|---|---|",
         f"| Gymnasium LunarLander-v3 (C++ Box2D), Python loop | 1 | 1 core | {gym:,.0f} | 1.0x | - | - | - |",
     ]
-    for (solver, one_kernel), single in singles.items():
-        how = "compiled as one kernel (`jit_one_kernel`, the Gymnasium bridge)" if one_kernel else "`jax.jit`"
-        lines.append(f"| port ({SOLVERS[solver]}), one env's step called from Python, {how} (key split inside) "
+    for (solver, path), single in singles.items():
+        lines.append(f"| port ({SOLVERS[solver]}), one env's step called from Python, {SINGLE_ENV_PATHS[path]} "
                      f"| 1 | 1 | {single:,.0f} | {single / gym:.2f}x | - | - | - |")
     for r in rows:
         actions = "" if r["policy"] == "random" else ", Gymnasium's heuristic controller"
@@ -237,7 +277,8 @@ def main() -> None:
     lines += ["", "Compile of one vmapped `env.step` at 1,024 envs (`jax.jit(jax.vmap(env.step))` traced, lowered and "
               "compiled, fresh each time; the compile column above is the whole scanned rollout under `shard_map`):"]
     for solver, times in step_compiles.items():
-        lines.append(f"- {SOLVERS[solver]}: {', '.join(f'{t:.1f}' for t in times)} s")
+        if times:
+            lines.append(f"- {SOLVERS[solver]}: {', '.join(f'{t:.1f}' for t in times)} s")
     table = "\n".join(lines) + "\n"
     save_table(table, args.out, "lunar_lander_speed")
 

@@ -25,7 +25,7 @@ from gymnasium import spaces as gym_spaces
 from gymnasium.envs.registration import EnvSpec
 from gymnax.environments import spaces as gymnax_spaces
 
-from amjax.cores import jit_one_kernel
+from amjax.cores import TreeLayout, jit_one_kernel
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 from amjax.wrappers.active_measure import MODES, REWARD_TIMINGS, UNBOUNDED, check_extra_obs
 from amjax.wrappers.instruments import check_instrument_values, check_instruments, feature_owner
@@ -373,13 +373,27 @@ def _packed_keys(info: dict[Any, Any]) -> list[Any]:
     ]
 
 
-# Module-level jitted functions keyed (statically) on the environment object: every `GymnasiumEnv`
-# built on one env object (e.g. the copies in a vectorised env) shares one compiled reset and step.
-@partial(jax.jit, static_argnums=0)
-def _reset(env: Any, seed: jax.Array, params: Any) -> tuple[Any, Any, jax.Array]:
+def _raw_reset(env: Any, seed: jax.Array, params: Any) -> tuple[Any, Any, jax.Array]:
     key_reset, key_next = jax.random.split(jax.random.key(seed))
     obs, state = env.reset(key_reset, params)
     return obs, state, key_next
+
+
+# Module-level jitted functions keyed (statically) on the environment object and the layouts of its packed carry
+# (key and state) and params (`amjax.cores.TreeLayout`): every `GymnasiumEnv` built on one env object (e.g. the
+# copies in a vectorised env) shares one compiled reset and step. The carry and the params cross each call as one
+# uint32 vector each, not as their 20-odd leaves (each leaf costs about 2 us in and out of a call).
+@partial(jax.jit, static_argnums=(0, 1, 2))
+def _reset(
+    env: Any, carry: TreeLayout, params: TreeLayout, seed: jax.Array, params_words: jax.Array
+) -> tuple[Any, jax.Array]:
+    obs, state, key = _raw_reset(env, seed, params.unpack(params_words))
+    return obs, carry.pack((key, state))
+
+
+@partial(jax.jit, static_argnums=0)
+def _pack_params(layout: TreeLayout, params: Any) -> jax.Array:
+    return layout.pack(params)
 
 
 def _raw_step(
@@ -412,11 +426,20 @@ def _packed_step(
     return obs, state, key, packed, rest
 
 
+def _carried_step(
+    env: Any, carry: TreeLayout, params: TreeLayout, carry_words: jax.Array, action: jax.Array, params_words: jax.Array
+) -> tuple[Any, jax.Array, jax.Array, dict[Any, Any]]:
+    """`_packed_step` on the packed carry and params; returns (obs, next carry, scalars, other info)."""
+    key, state = carry.unpack(carry_words)
+    obs, state, key, scalars, rest = _packed_step(env, key, state, action, params.unpack(params_words))
+    return obs, carry.pack((key, state)), scalars, rest
+
+
 @lru_cache(maxsize=64)  # bounded like jax.jit's own cache of static arguments: a program per env object
-def _step(env: Any) -> Any:
-    """`_packed_step` of `env`, compiled as one kernel (`amjax.cores.jit_one_kernel`: one env's step is small
-    operations, each launched apart otherwise; LunarLander-v3's step from Python ran 1.1-1.7x faster)."""
-    return jit_one_kernel(partial(_packed_step, env))
+def _step(env: Any, carry: TreeLayout, params: TreeLayout) -> Any:
+    """`_carried_step` of `env`, compiled as one kernel (`amjax.cores.jit_one_kernel`: one env's step is small
+    operations, each launched apart otherwise)."""
+    return jit_one_kernel(partial(_carried_step, env, carry, params))
 
 
 class GymnasiumEnv(gymnasium.Env[Any, Any]):
@@ -460,7 +483,8 @@ class GymnasiumEnv(gymnasium.Env[Any, Any]):
         self.gymnax_env = env
         # Required: an amjax env's `default_params` have cost 0, not the cost `amjax.make` was given.
         # On the device once: Python numbers among the leaves would be copied over at every step.
-        self.params = jax.device_put(params)
+        self._params_layout = TreeLayout.of(params)
+        self.params = params
         self.action_space = gymnasium_space(env.action_space(self.params))
         self.observation_space = gymnasium_space(env.observation_space(self.params))
         if not isinstance(self.action_space, gym_spaces.Discrete | gym_spaces.Box):
@@ -474,13 +498,26 @@ class GymnasiumEnv(gymnasium.Env[Any, Any]):
         )
         if seed is not None:
             super().reset(seed=check_positive_int("seed", seed, minimum=0))
-        self._state: Any = None
-        self._key: jax.Array | None = None
+        self._carry: jax.Array | None = None  # the episode's key and state, packed (`_carry_layout`)
+
+    @property
+    def params(self) -> Any:
+        """The env params every step uses (on the device); assign new ones of the same structure to change them."""
+        return self._params
+
+    @params.setter
+    def params(self, params: Any) -> None:
+        if TreeLayout.of(params) != self._params_layout:
+            raise ValueError("params: new params must have the structure, shapes and dtypes of the env's "
+                             "params (build them with `.replace(...)` on the current ones)")
+        self._params = jax.device_put(params)
+        self._params_words = _pack_params(self._params_layout, self._params)  # what the programs take
 
     def _check_shapes(self) -> None:
         """Trace reset and step (no compile) to refuse batched params, e.g. `make(cost=[...])`."""
         env = self.gymnax_env
-        obs, state, key = jax.eval_shape(partial(_reset, env), np.uint32(0), self.params)
+        obs, state, key = jax.eval_shape(partial(_raw_reset, env), np.uint32(0), self.params)
+        self._carry_layout = TreeLayout.of((key, state))
         action = jax.ShapeDtypeStruct(self.action_space.shape, self._jax_action(0).dtype)
         out = jax.eval_shape(partial(_raw_step, env), key, state, action, self.params)
         step_obs, reward, terminated, truncated, info = out[0], *out[3:]
@@ -508,24 +545,26 @@ class GymnasiumEnv(gymnasium.Env[Any, Any]):
             check_positive_int("seed", seed, minimum=0)
         super().reset(seed=seed)
         jax_seed = self.np_random.integers(0, 2**32, dtype=np.uint32)
-        obs, self._state, self._key = _reset(self.gymnax_env, jax_seed, self.params)
+        layouts = (self._carry_layout, self._params_layout)
+        obs, self._carry = _reset(self.gymnax_env, *layouts, jax_seed, self._params_words)
         return _obs_to_numpy(jax.device_get(obs), self.observation_space), {}
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         """One transition; after a terminated or truncated step, `reset` must come next."""
-        if self._state is None:
+        if self._carry is None:
             raise RuntimeError(
                 "step: no episode is running (call reset() first, and again after an episode terminated or truncated)"
             )
         action = self._jax_action(check_action(self.action_space, action))
-        obs, state, key, packed, rest = _step(self.gymnax_env)(self._key, self._state, action, self.params)
+        step = _step(self.gymnax_env, self._carry_layout, self._params_layout)
+        obs, carry, packed, rest = step(self._carry, action, self._params_words)
         obs, packed, rest = jax.device_get((obs, packed, rest))
         packed = packed.tolist()
         terminated, truncated = bool(packed[1]), bool(packed[2])
         info = {name: kind(value) for (name, kind), value in zip(self._packed_info.items(), packed[3:], strict=True)}
         for name, value in rest.items():
             info[name] = value.item() if np.ndim(value) == 0 else np.asarray(value)
-        self._state, self._key = (None, None) if terminated or truncated else (state, key)
+        self._carry = None if terminated or truncated else carry
         return _obs_to_numpy(obs, self.observation_space), packed[0], terminated, truncated, info
 
 

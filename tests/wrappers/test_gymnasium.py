@@ -399,6 +399,19 @@ def test_exported_env_refuses_batched_params() -> None:
         to_gymnasium(env, params)
 
 
+def test_exported_env_takes_new_params_of_the_same_structure() -> None:
+    # The bridge hands its params to the compiled step packed (amjax.cores.TreeLayout); assigning new ones repacks.
+    env, params = amjax.make("CartPole-v0", cost=0.1)
+    gym_env = to_gymnasium(env, params, seed=0)
+    gym_env.reset(seed=1)
+    measured = 2  # CartPole's control 0, measured
+    assert gym_env.step(measured)[1] == pytest.approx(0.9)
+    gym_env.params = params.replace(cost=0.5)
+    assert gym_env.step(measured)[1] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="params: new params must have the structure"):
+        gym_env.params = params.replace(cost=jnp.zeros(3))
+
+
 def test_exported_box_actions_are_checked() -> None:
     env, params = made("Pendulum-v1")
     gym_env = to_gymnasium(env, params.replace(cost=jnp.float32(0.1)), seed=0)
