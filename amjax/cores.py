@@ -179,8 +179,11 @@ class TreeLayout:
     A jitted call pays for every array it takes and returns (about 2 us each on CPU): one env's state, 20-odd
     leaves in and out, costs more than a LunarLander-v3 step compiled as one kernel. A caller that steps one
     env from Python (the Gymnasium bridge) keeps the state packed between calls and unpacks it inside the
-    program. Leaves of 4 or 8 bytes are bit-cast; bools, narrower integers and 16-bit floats take one word
-    each; typed PRNG keys travel as their key data. Build it with `TreeLayout.of(example)`.
+    program. Elements of 4 or 8 bytes are bit-cast (one or two words each); bools, narrower integers and 16-bit
+    floats take one word per element; typed PRNG keys travel as their key data. Build it with
+    `TreeLayout.of(example)`; `pack` refuses a tree whose leaves differ from the example's in shape, dtype or key
+    implementation (`check`; Python scalars and same-kind dtypes are cast). Weak types are not kept: unpacked
+    leaves are strongly typed.
     """
 
     treedef: Any
@@ -190,7 +193,7 @@ class TreeLayout:
 
     @classmethod
     def of(cls, example: Any) -> TreeLayout:
-        """The layout of `example`, a pytree of arrays or `jax.ShapeDtypeStruct`s."""
+        """The layout of `example`, a pytree of arrays, Python scalars or `jax.ShapeDtypeStruct`s."""
         leaves, treedef = jax.tree.flatten(example)
         impls: list[Any] = []
 
@@ -200,9 +203,11 @@ class TreeLayout:
 
         data = jax.eval_shape(key_data, *leaves)
         for x in data:
-            if not any(jnp.issubdtype(x.dtype, kind) for kind in (jnp.bool_, jnp.integer, jnp.floating)):
-                raise TypeError(f"TreeLayout: a leaf of dtype {x.dtype}; allowed: bool, integer and floating leaves, "
-                                "and typed PRNG keys")
+            kinds = (jnp.bool_, jnp.integer, jnp.floating)
+            if not any(jnp.issubdtype(x.dtype, kind) for kind in kinds) or np.dtype(x.dtype).itemsize == 1 and \
+                    jnp.issubdtype(x.dtype, jnp.floating):
+                raise TypeError(f"TreeLayout: a leaf of dtype {x.dtype}; allowed: bool, integer and floating leaves "
+                                "(floats of 16 bits or more), and typed PRNG keys")
         return cls(treedef, tuple(tuple(x.shape) for x in data), tuple(np.dtype(x.dtype) for x in data),
                    tuple(impls))
 
@@ -211,8 +216,34 @@ class TreeLayout:
         """Words (uint32) in the packed vector."""
         return sum(_words(shape, dtype) for shape, dtype in zip(self.shapes, self.dtypes, strict=True))
 
+    def check(self, tree: Any) -> None:
+        """ValueError naming the first leaf of `tree` whose structure, shape, dtype or key implementation differs
+        from the example's. Python scalars may stand for any 0-d leaf that is not a key, and a leaf of a dtype that
+        casts to the example's by NumPy's "same_kind" rule (int32 to float32, not float32 to int32) is cast."""
+        try:
+            leaves = self.treedef.flatten_up_to(tree)
+        except (ValueError, TypeError) as error:
+            raise ValueError(f"TreeLayout: the tree's structure differs from the example's: {error}") from None
+        paths = [jax.tree_util.keystr(path) for path, _ in
+                 jax.tree_util.tree_flatten_with_path(jax.tree.unflatten(self.treedef, range(len(leaves))))[0]]
+        for path, x, shape, dtype, impl in zip(paths, leaves, self.shapes, self.dtypes, self.key_impls, strict=True):
+            scalar = isinstance(x, bool | int | float) and impl is None and shape == ()
+            if scalar:
+                continue
+            if impl is not None:
+                got = (jax.random.key_impl(x), tuple(jax.random.key_data(x).shape)) if _is_key(x) else (None, None)
+                expected = (impl, shape)
+            else:
+                got = ("array", tuple(jnp.shape(x)), np.dtype(x.dtype)) if not _is_key(x) else ("key",)
+                expected = ("array", shape, dtype)
+                if got[:2] == expected[:2] and np.can_cast(got[2], dtype, "same_kind"):
+                    continue  # cast by `pack`, e.g. an int32 cost for a float32 leaf
+            if got != expected:
+                raise ValueError(f"TreeLayout: leaf {path or '(root)'} is {got}; the layout expects {expected}")
+
     def pack(self, tree: Any) -> jax.Array:
-        """`tree` (laid out as the example) as one uint32 vector of `size` words."""
+        """`tree` (laid out as the example; see `check`) as one uint32 vector of `size` words."""
+        self.check(tree)
         leaves = self.treedef.flatten_up_to(tree)
         parts = [_to_words(jax.random.key_data(x) if impl is not None else jnp.asarray(x, dtype))
                  for x, dtype, impl in zip(leaves, self.dtypes, self.key_impls, strict=True)]
@@ -220,6 +251,9 @@ class TreeLayout:
 
     def unpack(self, words: jax.Array) -> Any:
         """The pytree that `pack` made `words` from."""
+        if jnp.shape(words) != (self.size,) or jnp.result_type(words) != jnp.uint32:
+            raise ValueError(f"TreeLayout.unpack: words of shape {jnp.shape(words)} and dtype "
+                             f"{jnp.result_type(words)}; the layout packs to uint32[{self.size}]")
         leaves, start = [], 0
         for shape, dtype, impl in zip(self.shapes, self.dtypes, self.key_impls, strict=True):
             stop = start + _words(shape, dtype)

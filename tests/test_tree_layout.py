@@ -79,3 +79,28 @@ def test_different_values_pack_differently() -> None:
 def test_unsupported_leaves_are_refused_with_the_allowed_kinds() -> None:
     with pytest.raises(TypeError, match="allowed: bool, integer and floating"):
         TreeLayout.of({"z": jnp.zeros(2, jnp.complex64)})
+    with pytest.raises(TypeError, match="floats of 16 bits or more"):
+        TreeLayout.of({"z": jnp.zeros(2, jnp.float8_e4m3fn)})
+
+
+def test_pack_refuses_trees_unlike_the_example_and_unpack_words_of_another_size() -> None:
+    layout = TreeLayout.of({"x": jnp.zeros(3), "key": jax.random.key(0), "c": 0.5})
+    good = {"x": jnp.ones(3), "key": jax.random.key(1), "c": 1}  # a Python scalar is cast to the example's dtype
+    assert layout.unpack(layout.pack(good))["c"] == 1.0
+    cast = layout.unpack(layout.pack({**good, "x": jnp.arange(3, dtype=jnp.int32)}))["x"]  # same kind: cast
+    assert cast.dtype == jnp.float32 and cast.tolist() == [0.0, 1.0, 2.0]
+    narrowing = TreeLayout.of({"i": jnp.zeros(2, jnp.int32)})
+    with pytest.raises(ValueError, match=r"leaf \['i'\]"):
+        narrowing.pack({"i": jnp.ones(2, jnp.float32)})  # float to int would lose the fraction
+    bad = [
+        ({**good, "x": jnp.ones(5)}, r"leaf \['x'\]"),
+        ({**good, "x": jnp.ones(3, jnp.complex64)}, r"leaf \['x'\]"),
+        ({**good, "key": jax.random.key(1, impl="rbg")}, r"leaf \['key'\]"),
+        ({**good, "key": jax.random.key_data(jax.random.key(1))}, r"leaf \['key'\]"),
+        ({"x": jnp.ones(3)}, "structure differs"),
+    ]
+    for tree, named in bad:
+        with pytest.raises(ValueError, match=named):
+            layout.pack(tree)
+    with pytest.raises(ValueError, match=r"packs to uint32\[6\]"):
+        layout.unpack(jnp.zeros(7, jnp.uint32))

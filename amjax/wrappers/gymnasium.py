@@ -435,7 +435,7 @@ def _carried_step(
     return obs, carry.pack((key, state)), scalars, rest
 
 
-@lru_cache(maxsize=64)  # bounded like jax.jit's own cache of static arguments: a program per env object
+@lru_cache(maxsize=64)  # bounded like jax.jit's own cache of static arguments: a program per env object and layouts
 def _step(env: Any, carry: TreeLayout, params: TreeLayout) -> Any:
     """`_carried_step` of `env`, compiled as one kernel (`amjax.cores.jit_one_kernel`: one env's step is small
     operations, each launched apart otherwise)."""
@@ -502,14 +502,18 @@ class GymnasiumEnv(gymnasium.Env[Any, Any]):
 
     @property
     def params(self) -> Any:
-        """The env params every step uses (on the device); assign new ones of the same structure to change them."""
+        """The env params every step uses (on the device). Assigning new ones with the same structure, shapes and
+        dtypes (e.g. `.replace(cost=0.5)` on these) changes the next steps and resets without a new compile; the
+        action and observation spaces and `spec` keep the params the env was built with."""
         return self._params
 
     @params.setter
     def params(self, params: Any) -> None:
-        if TreeLayout.of(params) != self._params_layout:
-            raise ValueError("params: new params must have the structure, shapes and dtypes of the env's "
-                             "params (build them with `.replace(...)` on the current ones)")
+        try:
+            self._params_layout.check(params)
+        except ValueError as error:
+            raise ValueError(f"params: new params must have the structure, shapes and dtypes of the env's params "
+                             f"({error})") from None
         self._params = jax.device_put(params)
         self._params_words = _pack_params(self._params_layout, self._params)  # what the programs take
 
@@ -518,6 +522,7 @@ class GymnasiumEnv(gymnasium.Env[Any, Any]):
         env = self.gymnax_env
         obs, state, key = jax.eval_shape(partial(_raw_reset, env), np.uint32(0), self.params)
         self._carry_layout = TreeLayout.of((key, state))
+        self._compiled_step = _step(env, self._carry_layout, self._params_layout)  # looked up once, not per step
         action = jax.ShapeDtypeStruct(self.action_space.shape, self._jax_action(0).dtype)
         out = jax.eval_shape(partial(_raw_step, env), key, state, action, self.params)
         step_obs, reward, terminated, truncated, info = out[0], *out[3:]
@@ -556,8 +561,7 @@ class GymnasiumEnv(gymnasium.Env[Any, Any]):
                 "step: no episode is running (call reset() first, and again after an episode terminated or truncated)"
             )
         action = self._jax_action(check_action(self.action_space, action))
-        step = _step(self.gymnax_env, self._carry_layout, self._params_layout)
-        obs, carry, packed, rest = step(self._carry, action, self._params_words)
+        obs, carry, packed, rest = self._compiled_step(self._carry, action, self._params_words)
         obs, packed, rest = jax.device_get((obs, packed, rest))
         packed = packed.tolist()
         terminated, truncated = bool(packed[1]), bool(packed[2])

@@ -408,8 +408,22 @@ def test_exported_env_takes_new_params_of_the_same_structure() -> None:
     assert gym_env.step(measured)[1] == pytest.approx(0.9)
     gym_env.params = params.replace(cost=0.5)
     assert gym_env.step(measured)[1] == pytest.approx(0.5)
-    with pytest.raises(ValueError, match="params: new params must have the structure"):
+    gym_env.params = params.replace(cost=1)  # a Python int for a float32 leaf
+    assert gym_env.step(measured)[1] == pytest.approx(0.0)
+    with pytest.raises(ValueError, match=r"params: new params must have the structure.*leaf \.cost"):
         gym_env.params = params.replace(cost=jnp.zeros(3))
+    assert gym_env.step(measured)[1] == pytest.approx(0.0)  # a refused assignment changes nothing
+
+
+def test_exported_envs_on_one_env_object_share_one_compiled_step() -> None:
+    env, params = amjax.make("CartPole-v0", cost=0.1)
+    first, second = to_gymnasium(env, params, seed=0), to_gymnasium(env, params.replace(cost=0.3), seed=1)
+    for gym_env in (first, second):
+        gym_env.reset()
+        gym_env.step(2)
+    assert first._compiled_step is second._compiled_step
+    other_env, other_params = amjax.make("CartPole-v0", cost=0.1)
+    assert to_gymnasium(other_env, other_params)._compiled_step is not first._compiled_step
 
 
 def test_exported_box_actions_are_checked() -> None:
