@@ -146,8 +146,8 @@ def jit_one_kernel(fn: Callable[..., Any]) -> Callable[..., Any]:
 
     def output_leaves(*args: Any) -> list[jax.Array]:
         leaves, traced["tree"] = jax.tree.flatten(fn(*args))
-        traced["key_impls"] = [jax.random.key_impl(x) if _is_key(x) else None for x in leaves]
-        return [jax.random.key_data(x) if _is_key(x) else x for x in leaves]  # a loop carries no typed keys
+        leaves, traced["key_impls"] = _keys_as_data(leaves)  # a loop carries no typed keys
+        return leaves
 
     def looped(trips: jax.Array, *args: Any) -> Any:
         def body(i: jax.Array, carry: Any) -> Any:
@@ -157,9 +157,7 @@ def jit_one_kernel(fn: Callable[..., Any]) -> Callable[..., Any]:
 
         zeros = [jnp.zeros(s.shape, s.dtype) for s in jax.eval_shape(output_leaves, *args)]
         leaves = jax.lax.fori_loop(0, trips, body, (args, zeros))[1]
-        leaves = [x if impl is None else jax.random.wrap_key_data(x, impl=impl)
-                  for x, impl in zip(leaves, traced["key_impls"], strict=True)]
-        return jax.tree.unflatten(traced["tree"], leaves)
+        return jax.tree.unflatten(traced["tree"], _data_as_keys(leaves, traced["key_impls"]))
 
     compiled = jax.jit(looped)
     one = np.int32(1)
@@ -198,8 +196,9 @@ class TreeLayout:
         impls: list[Any] = []
 
         def key_data(*leaves: Any) -> list[Any]:
-            impls.extend(jax.random.key_impl(x) if _is_key(x) else None for x in leaves)
-            return [jax.random.key_data(x) if _is_key(x) else x for x in leaves]
+            data, found = _keys_as_data(leaves)
+            impls.extend(found)
+            return data
 
         data = jax.eval_shape(key_data, *leaves)
         for x in data:
@@ -255,12 +254,11 @@ class TreeLayout:
             raise ValueError(f"TreeLayout.unpack: words of shape {jnp.shape(words)} and dtype "
                              f"{jnp.result_type(words)}; the layout packs to uint32[{self.size}]")
         leaves, start = [], 0
-        for shape, dtype, impl in zip(self.shapes, self.dtypes, self.key_impls, strict=True):
+        for shape, dtype in zip(self.shapes, self.dtypes, strict=True):
             stop = start + _words(shape, dtype)
-            leaf = _from_words(words[start:stop], shape, dtype)
-            leaves.append(leaf if impl is None else jax.random.wrap_key_data(leaf, impl=impl))
+            leaves.append(_from_words(words[start:stop], shape, dtype))
             start = stop
-        return jax.tree.unflatten(self.treedef, leaves)
+        return jax.tree.unflatten(self.treedef, _data_as_keys(leaves, self.key_impls))
 
 
 def _words(shape: tuple[int, ...], dtype: np.dtype) -> int:
@@ -293,3 +291,15 @@ def _from_words(words: jax.Array, shape: tuple[int, ...], dtype: np.dtype) -> ja
 
 def _is_key(x: Any) -> bool:
     return jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def _keys_as_data(leaves: list[Any]) -> tuple[list[Any], list[Any]]:
+    """`leaves` with each typed PRNG key replaced by its key data, and each leaf's PRNG implementation (None where
+    it is not a key); `_data_as_keys` undoes it."""
+    impls = [jax.random.key_impl(x) if _is_key(x) else None for x in leaves]
+    return [x if impl is None else jax.random.key_data(x) for x, impl in zip(leaves, impls, strict=True)], impls
+
+
+def _data_as_keys(leaves: list[Any], impls: Any) -> list[Any]:
+    return [x if impl is None else jax.random.wrap_key_data(x, impl=impl)
+            for x, impl in zip(leaves, impls, strict=True)]

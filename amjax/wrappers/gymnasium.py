@@ -518,7 +518,8 @@ class GymnasiumEnv(gymnasium.Env[Any, Any]):
         self._params_words = _pack_params(self._params_layout, self._params)  # what the programs take
 
     def _check_shapes(self) -> None:
-        """Trace reset and step (no compile) to refuse batched params, e.g. `make(cost=[...])`."""
+        """Trace reset and step (no compile) to refuse batched params, e.g. `make(cost=[...])`; set the layout of the
+        packed carry (key and state) and look up the compiled step."""
         env = self.gymnax_env
         obs, state, key = jax.eval_shape(partial(_raw_reset, env), np.uint32(0), self.params)
         self._carry_layout = TreeLayout.of((key, state))
