@@ -29,7 +29,7 @@ from typing import Any
 
 # The settings DRQN had before issue 13 (its defaults then); every other field is today's default.
 OLD_DRQN = {"num_envs": 4, "train_freq": 8, "gradient_steps": 4, "batch_size": 32, "seq_len": 16, "burn_in": 8,
-            "buffer_size": 2_000, "learning_rate": 2e-3, "rnn_size": 64, "hidden": (64,)}
+            "buffer_size": 2_000, "learning_rate": 2e-3, "rnn_size": 64, "hidden": (64,), "train_group": 0}
 CASES: dict[str, tuple[str, dict[str, Any]]] = {
     "drqn-old": ("drqn", OLD_DRQN),
     "drqn": ("drqn", {}),

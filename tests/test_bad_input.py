@@ -62,6 +62,7 @@ SWEEP_CASES = [
     (["--set", "hidden=(0,)"], "hidden: got (0,)"),
     (["--set", "hidden=(64,-1)"], "hidden: got (64, -1)"),
     (["--set", "rescore_episodes=0"], "rescore_episodes: got 0"),
+    (["--set", "train_group=-1"], "train_group: got -1; allowed values: integers >= 0"),
     # Lists of bare words are split, and the bad word is named.
     (["--set", "activation=relu,swish"], "activation: got 'swish'; allowed values: 'tanh', 'relu', 'elu'"),
     (["--set", "eval_policy=stochastic,sample"], "eval_policy: got 'sample'"),

@@ -24,6 +24,7 @@ from flax import struct
 from amjax.agents.config import AgentConfig
 from amjax.agents.rollout import ActFn, EnvBatch, Transition, fast_key, reset_envs, step_envs
 from amjax.agents.setup import Setup, training_env
+from amjax.batching import in_groups
 from amjax.wrappers.episode_stats import EpisodeMetrics
 
 Policy = tuple[ActFn, Any]  # (act function, its initial agent carry for a batch of envs; None if memoryless)
@@ -196,16 +197,23 @@ def init_run(algo: Algorithm, config: AgentConfig, key: jax.Array) -> RunState:
     )
 
 
+def _train_period(algo: Algorithm, config: AgentConfig, algo_state: Any) -> tuple[Any, Any]:
+    """One evaluation period's updates (a pure function of its operands, as `in_groups` needs)."""
+    setup = algo.setup(config)
+    return jax.lax.scan(lambda s, _: algo.update(config, setup, s), algo_state, None, config.updates_per_eval)
+
+
 def run_evals(
     algo: Algorithm, config: AgentConfig, state: RunState, num_evals: int
 ) -> tuple[RunState, EvalRow]:
     """Train for `num_evals` evaluation periods; returns the new state and one `EvalRow` per period."""
     setup = algo.setup(config)
+    train_period = partial(_train_period, algo)
+    if config.train_group:
+        train_period = in_groups(train_period, config.train_group)
 
     def one_period(state: RunState, _):
-        algo_state, stats = jax.lax.scan(
-            lambda s, _: algo.update(config, setup, s), state.algo, None, config.updates_per_eval
-        )
+        algo_state, stats = train_period(config, state.algo)
         train = jax.tree.map(lambda x: x.sum(0), stats.episodes).means()
         loss = stats.loss.mean()
         params = algo.params(algo_state)

@@ -172,6 +172,20 @@ def test_seeds_determinism_and_vmap_equals_alone(name):
     assert not np.array_equal(np.asarray(first.loss), np.asarray(other.loss))
 
 
+@pytest.mark.parametrize("name", ["ppo", "dqn"])
+def test_train_group_equals_all_at_once(name):
+    """`train_group` = 2 trains 4 vmapped configurations as 2 groups of 2 (a `lax.map`): each configuration
+    equals its ungrouped batch row and its run alone."""
+    base = TINY[name]
+    configs = [base.replace(cost=c, train_group=2) for c in (0.0, 0.1, 0.2, 0.3)]
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in (4, 5, 6, 7)])
+    grouped, _ = _assert_batch_equals_alone(name, configs, keys)
+    _, ungrouped = _compiled(name)[1](stack_configs([c.replace(train_group=0) for c in configs]), keys)
+    for field in ("eval_return", "train_return", "loss"):
+        np.testing.assert_allclose(grouped.columns()[field], ungrouped.columns()[field], rtol=2e-4, atol=2e-4)
+    assert not np.array_equal(grouped.columns()["loss"][0], grouped.columns()["loss"][1])
+
+
 @pytest.mark.parametrize("name", ["dqn", "ppo-box"])
 def test_instrument_prices_vmap_equals_alone(name):
     """Instruments' prices are traced: a batch of prices is one program, config i in it equals config i alone
