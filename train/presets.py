@@ -97,7 +97,7 @@ ACROBOT_PPO: dict[str, object] = {
 ACROBOT_DQN: dict[str, object] = {
     "hidden": (128, 128),
     "n_step": 3,
-    "train_group": 5,  # 5 configurations at a time under vmap: about 9% faster than 20 (docs/acrobot.md)
+    "train_group": 5,  # 5 configurations at a time under vmap: about 9% faster than 20 (docs/recurrent.md)
 }
 # Dueling DQN on LunarLander-v3: four envs per configuration, a gradient step after each step of all four (still 64
 # samples per 4 env steps: the replay ratio, exploration schedule, target interval and budget are the defaults').
