@@ -152,9 +152,11 @@ def _compacted_rows(expensive: Callable, cheap: Callable, capacity: float, min_c
     return rows
 
 
-def in_groups(fun: Callable, group_size: int) -> Callable:
+def in_groups(fun: Callable, group_size: int, keep_unbatched: bool = False) -> Callable:
     """``fun`` unchanged, except that under ``vmap`` it runs the batch in consecutive groups of about
     ``group_size`` members (``lax.map`` over groups, ``vmap`` within one) instead of all members at once.
+    With ``keep_unbatched``, a batch of at most ``group_size`` is the plain ``vmap`` (arguments that are not batched
+    stay unbatched), so small batches compile exactly as without ``in_groups``.
 
     XLA executes a program op by op; vmapped over hundreds of configurations, every intermediate of a minibatch
     step (e.g. [configs, 256, 64] activations) is megabytes and streams through memory between ops. Groups whose
@@ -168,6 +170,10 @@ def in_groups(fun: Callable, group_size: int) -> Callable:
 
     @grouped.def_vmap
     def rule(axis_size, in_batched, *args):
+        if keep_unbatched and axis_size <= group_size:
+            in_axes = jax.tree.map(lambda batched: 0 if batched else None, tuple(in_batched))
+            out = jax.vmap(fun, in_axes=in_axes)(*args)
+            return out, _all_batched(out)
         args = _broadcast(args, in_batched, axis_size)
         if axis_size <= group_size:
             out = jax.vmap(fun)(*args)

@@ -12,6 +12,10 @@ included) and the child's peak resident memory. Cases:
 
     taskset -c 1 python benchmarks/recurrent_speed.py  # writes benchmarks/results/recurrent_speed_<date>[_N].md
     python benchmarks/recurrent_speed.py --configs 4 --steps 4096 --cases drqn  # a smoke run
+    python benchmarks/recurrent_speed.py --devices 2  # every case split over 2 CPU devices, as a sweep runs
+
+`--devices 1` (the default) runs each case as one XLA CPU program; `--devices N` splits its configurations over N
+JAX CPU devices (one per core, `jax.shard_map`), as the sweep runner does (`amjax.sweep.devices`).
 """
 
 from __future__ import annotations
@@ -38,13 +42,16 @@ CASES: dict[str, tuple[str, dict[str, Any]]] = {
 COSTS = (0.0, 0.1, 0.2, 0.3, 0.4)
 
 
-def run_case(name: str, configs: int, steps: int, eval_every: int) -> dict[str, Any]:
-    """Compile and time one case in this process."""
+def run_case(name: str, configs: int, steps: int, eval_every: int, devices: int = 1) -> dict[str, Any]:
+    """Compile and time one case in this process, its configurations split over `devices` CPU devices."""
     import jax
+
+    jax.config.update("jax_num_cpu_devices", devices)  # before JAX starts (this child's first JAX call)
     import jax.numpy as jnp
 
     from amjax.agents import ALGORITHMS, stack_configs
     from amjax.agents.training import init_run, run_evals
+    from amjax.sweep.devices import config_sharding, sharded_jit
 
     agent, overrides = CASES[name]
     algo = ALGORITHMS[agent]
@@ -56,7 +63,13 @@ def run_case(name: str, configs: int, steps: int, eval_every: int) -> dict[str, 
     config, num_evals = stack_configs(items), items[0].num_evals
     keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
 
-    train = jax.jit(jax.vmap(lambda c, k: run_evals(algo, c, init_run(algo, c, k), num_evals)[1].test.costed_return))
+    cpus = jax.devices("cpu")[:devices]
+
+    def eval_returns(c, k):
+        return run_evals(algo, c, init_run(algo, c, k), num_evals)[1].test.costed_return
+
+    train = sharded_jit(jax.vmap(eval_returns), cpus, in_shardings=config_sharding(cpus))
+    config, keys = jax.device_put((config, keys), config_sharding(cpus))
     start = time.perf_counter()
     compiled = train.lower(config, keys).compile()
     compile_s = time.perf_counter() - start
@@ -64,7 +77,8 @@ def run_case(name: str, configs: int, steps: int, eval_every: int) -> dict[str, 
     returns = jax.block_until_ready(compiled(config, keys))
     run_s = time.perf_counter() - start
     return {
-        "case": name, "agent": agent, "overrides": overrides, "configs": configs, "steps_per_config": total,
+        "case": name, "agent": agent, "overrides": overrides, "configs": configs, "devices": devices,
+        "steps_per_config": total,
         "compile_s": round(compile_s, 1), "run_s": round(run_s, 1),
         "env_steps_per_s": round(configs * total / run_s), "peak_rss_mib": round(_peak_rss_mib()),
         "final_eval_return_median": round(float(jnp.median(returns[:, -1])), 1),
@@ -80,7 +94,8 @@ def markdown(results: list[dict[str, Any]], args: argparse.Namespace) -> str:
     lines = [
         f"# Recurrent agents at sweep scale ({datetime.date.today()})", "",
         f"{args.configs} configurations (costs {', '.join(map(str, COSTS))} x seeds) of CartPole-v0 (mode \"last\") "
-        f"in one vmapped program per case, each case in its own process, one after the other; {platform.node()}, "
+        f"in one vmapped program per case, split over {args.devices} CPU device(s), each case in its own process, "
+        f"one after the other; {platform.node()}, {platform.processor() or platform.machine()}, "
         f"{os.cpu_count()} CPUs, CPU affinity {sorted(os.sched_getaffinity(0))}, load average at the end "
         f"{os.getloadavg()[0]:.1f}. Env steps/s: all configurations together, evaluations included, compile "
         "excluded.", "",
@@ -103,18 +118,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--configs", type=int, default=50)
     parser.add_argument("--steps", type=int, default=20_480, help="env steps per configuration (rounded)")
     parser.add_argument("--eval-every", type=int, default=10_240)
+    parser.add_argument("--devices", type=int, default=1,
+                        help="split each case's configurations over this many CPU devices, one per core, as a sweep "
+                        "does (default 1: one program on one device)")
     parser.add_argument("--out", help="markdown file to write (default: benchmarks/results/recurrent_speed_<date>.md, "
                         "with _2, _3, ... added rather than overwriting an earlier result)")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if not 1 <= args.devices <= len(os.sched_getaffinity(0)):
+        parser.error(f"--devices: {args.devices}; allowed values: 1 to {len(os.sched_getaffinity(0))} (usable cores)")
+    if args.configs % args.devices:
+        parser.error(f"--configs: {args.configs} must be a multiple of --devices ({args.devices})")
     if args.child:
-        print(json.dumps(run_case(args.child, args.configs, args.steps, args.eval_every)))
+        print(json.dumps(run_case(args.child, args.configs, args.steps, args.eval_every, args.devices)))
         return 0
 
     results = []
     for name in args.cases:
         command = [sys.executable, __file__, "--child", name, "--configs", str(args.configs), "--steps",
-                   str(args.steps), "--eval-every", str(args.eval_every)]
+                   str(args.steps), "--eval-every", str(args.eval_every), "--devices", str(args.devices)]
         output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
         results.append(json.loads(output.strip().splitlines()[-1]))
         print(json.dumps(results[-1]), flush=True)

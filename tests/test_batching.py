@@ -1,4 +1,5 @@
-"""`amjax.batching`: branches and compacted selects give what `lax.cond` / `jnp.where` give, at every vmap level."""
+"""`amjax.batching`: branches and compacted selects give what `lax.cond` / `jnp.where` give, at every vmap level;
+`in_groups` gives what `vmap` gives."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from amjax.batching import select_compacted, uniform_cond
+from amjax.batching import in_groups, select_compacted, uniform_cond
 
 
 def expensive(x, y):
@@ -106,3 +107,29 @@ def test_uniform_cond_equals_cond_per_member(mask, seed):
     got = branched(pred, x, y)
     want = jax.vmap(jax.vmap(reference))(pred, x, y)
     jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), got, want)
+
+
+@pytest.mark.parametrize("keep_unbatched", [False, True])
+@pytest.mark.parametrize("batch", [3, 4, 10])
+def test_in_groups_equals_vmap(batch, keep_unbatched):
+    def fun(x, scale):
+        return {"y": jnp.sin(x) * scale, "total": x.sum() * scale}
+
+    x = jnp.arange(batch * 2, dtype=jnp.float32).reshape(batch, 2)
+    grouped = jax.vmap(in_groups(fun, 4, keep_unbatched=keep_unbatched), (0, None))(x, jnp.float32(1.5))
+    plain = jax.vmap(fun, (0, None))(x, jnp.float32(1.5))
+    jax.tree.map(np.testing.assert_array_equal, grouped, plain)
+
+
+def test_in_groups_keep_unbatched_compiles_small_batches_as_plain_vmap():
+    def fun(x, scale):
+        return jnp.sin(x) * scale
+
+    x, scale = jnp.ones((4, 3)), jnp.float32(2.0)
+    plain = str(jax.make_jaxpr(jax.vmap(fun, (0, None)))(x, scale))
+    kept = str(jax.make_jaxpr(jax.vmap(in_groups(fun, 4, keep_unbatched=True), (0, None)))(x, scale))
+    broadcast = str(jax.make_jaxpr(jax.vmap(in_groups(fun, 4), (0, None)))(x, scale))
+    assert kept == plain
+    assert broadcast != plain  # the default broadcasts unbatched arguments to the batch
+    grouped = str(jax.make_jaxpr(jax.vmap(in_groups(fun, 2, keep_unbatched=True), (0, None)))(x, scale))
+    assert "scan" in grouped and "scan" not in plain  # past group_size the groups are a loop

@@ -228,33 +228,58 @@ def test_vmap_256_envs_300_steps_finite() -> None:
 
 
 
+def _short_episodes_rollout(step, env: LunarLander, n: int):
+    """A jitted 40-step rollout of `n` envs from the reset under random actions, stepped by `step` (vmapped),
+    episodes cut at 15 steps so that every reset happens in free flight (no chaotic contacts); returns
+    (obs, reward, done) per step."""
+    params = env.default_params.replace(max_steps_in_episode=15)
+
+    @jax.jit
+    def rollout(key):
+        _, state = jax.vmap(env.reset, (0, None))(jax.random.split(key, n), params)
+
+        def body(state, key):
+            keys = jax.random.split(key, n)
+            action = jax.random.randint(key, (n,), 0, 4)
+            obs, state, reward, term, trunc, _ = jax.vmap(step, (0, 0, 0, None))(keys, state, action, params)
+            return state, (obs, reward, term | trunc)
+
+        return jax.lax.scan(body, state, jax.random.split(key, 40))[1]
+
+    return rollout
+
+
 def test_auto_reset_matches_gymnax_select_both() -> None:
     """`LunarLander.step` resets a vmapped batch only on steps where some env is done; gymnax computes a reset
-    every step and selects. Same keys, same results (to XLA's rounding: the two are different programs).
-    Episodes are cut at 15 steps so that every reset happens in free flight (no chaotic contacts)."""
+    every step and selects. Same keys, same results (to XLA's rounding: the two are different programs)."""
     from gymnax.environments import environment
 
     env = LunarLander(velocity_iterations=4)  # a short solver compiles fast; the auto-reset logic is the same
-    params = env.default_params.replace(max_steps_in_episode=15)
-    n = 8
+    n, key = 8, jax.random.PRNGKey(4)
+    obs, reward, done = jax.device_get(_short_episodes_rollout(env.step, env, n)(key))
+    gymnax_step = lambda *a: environment.Environment.step.__wrapped__(env, *a)  # noqa: E731
+    ref_obs, ref_reward, ref_done = jax.device_get(_short_episodes_rollout(gymnax_step, env, n)(key))
+    assert done.sum() >= 2 * n and (done == ref_done).all()
+    np.testing.assert_allclose(obs, ref_obs, atol=1e-5)
+    np.testing.assert_allclose(reward, ref_reward, atol=1e-3)
 
-    def run(step):
-        @jax.jit
-        def rollout(key):
-            _, state = jax.vmap(env.reset, (0, None))(jax.random.split(key, n), params)
 
-            def body(state, key):
-                keys = jax.random.split(key, n)
-                action = jax.random.randint(key, (n,), 0, 4)
-                obs, state, reward, term, trunc, _ = jax.vmap(step, (0, 0, 0, None))(keys, state, action, params)
-                return state, (obs, reward, term | trunc)
+def test_large_batch_steps_in_groups(monkeypatch) -> None:
+    """A vmapped batch of more than `STEP_GROUP` envs steps in groups (`in_groups`); each env's results are the
+    same as with the whole batch at once (to XLA's rounding), auto-resets included."""
+    from amjax.envs.lunar_lander import env as env_module
 
-            return jax.lax.scan(body, state, jax.random.split(key, 40))[1]
+    env = LunarLander(velocity_iterations=4)  # a short solver compiles fast; the grouping is the same
+    n, key = 24, jax.random.PRNGKey(5)
 
-        return jax.device_get(rollout(jax.random.PRNGKey(4)))
+    def run(group):
+        monkeypatch.setattr(env_module, "STEP_GROUP", group)  # read when `step` is traced
+        rollout = _short_episodes_rollout(env.step, env, n)
+        return jax.device_get(rollout(key)), str(jax.make_jaxpr(rollout)(key))
 
-    obs, reward, done = run(env.step)
-    ref_obs, ref_reward, ref_done = run(lambda *a: environment.Environment.step.__wrapped__(env, *a))
+    (obs, reward, done), grouped_jaxpr = run(8)  # 3 groups of 8
+    (ref_obs, ref_reward, ref_done), whole_jaxpr = run(1_000)
+    assert grouped_jaxpr.count("scan[") > whole_jaxpr.count("scan[")  # the groups are a loop: grouping took effect
     assert done.sum() >= 2 * n and (done == ref_done).all()
     np.testing.assert_allclose(obs, ref_obs, atol=1e-5)
     np.testing.assert_allclose(reward, ref_reward, atol=1e-3)
