@@ -63,7 +63,7 @@ def run_case(name: str, configs: int, steps: int, eval_every: int, devices: int 
     config, num_evals = stack_configs(items), items[0].num_evals
     keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
 
-    cpus = jax.devices("cpu")[:devices]
+    cpus = jax.devices("cpu")  # `devices` of them (set above)
 
     def eval_returns(c, k):
         return run_evals(algo, c, init_run(algo, c, k), num_evals)[1].test.costed_return
@@ -125,8 +125,10 @@ def main(argv: list[str] | None = None) -> int:
                         "with _2, _3, ... added rather than overwriting an earlier result)")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    if not 1 <= args.devices <= len(os.sched_getaffinity(0)):
-        parser.error(f"--devices: {args.devices}; allowed values: 1 to {len(os.sched_getaffinity(0))} (usable cores)")
+    from amjax.cores import usable_cores
+
+    if not 1 <= args.devices <= usable_cores():
+        parser.error(f"--devices: {args.devices}; allowed values: 1 to {usable_cores()} (usable cores)")
     if args.configs % args.devices:
         parser.error(f"--configs: {args.configs} must be a multiple of --devices ({args.devices})")
     if args.child:
