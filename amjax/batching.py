@@ -10,7 +10,10 @@ member. The functions here are ``custom_vmap`` rules that keep the work proporti
 - ``in_groups``: a batch run in cache-sized groups instead of all at once.
 
 The functions passed in must be pure functions of their operands (pass traced values as operands, do not close
-over them), as ``custom_vmap`` requires.
+over them), as ``custom_vmap`` requires. Each is traced once, at its operands' per-member types: ``custom_vmap``
+needs the unbatched program and its rule the batched one, and the rule replays the recorded program under ``vmap``
+instead of running the Python function a second time (for LunarLander's step, whose rules nest, this cuts the
+trace of a vmapped step by about a third).
 """
 
 from __future__ import annotations
@@ -21,6 +24,16 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+from jax.extend.core import jaxpr_as_fun
+
+
+def _traced(fun: Callable, *operands: Any) -> Callable:
+    """``fun`` traced once at the per-member types of ``operands`` (tracers of an enclosing ``vmap`` give their
+    member's type); the result replays the recorded jaxpr, source lines included, on operands of the same
+    structure, and a ``vmap`` of it batches that jaxpr without running ``fun``'s Python again."""
+    closed, out_shape = jax.make_jaxpr(fun, return_shape=True)(*operands)
+    replay, out_tree = jaxpr_as_fun(closed), jax.tree.structure(out_shape)
+    return lambda *args: jax.tree.unflatten(out_tree, replay(*jax.tree.leaves(args)))
 
 
 def _broadcast(operands: Sequence[Any], batched: Sequence[Any], axis_size: int) -> list[Any]:
@@ -68,6 +81,7 @@ def uniform_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *oper
     envs need).
     """
 
+    true_fun, false_fun = _traced(true_fun, *operands), _traced(false_fun, *operands)
     true_all, false_all = jax.vmap(true_fun), jax.vmap(false_fun)
 
     def mixed(pred, *operands):
@@ -109,6 +123,7 @@ def select_compacted(
         raise ValueError(f"capacity must be in (0, 1], got {capacity!r}")
     if isinstance(min_chunk, bool) or not isinstance(min_chunk, int) or min_chunk < 1:
         raise ValueError(f"min_chunk must be an int >= 1, got {min_chunk!r}")
+    expensive, cheap = _traced(expensive, *operands), _traced(cheap, *operands)
     batched = _compacted_rows(expensive, cheap, capacity, min_chunk)
     return _cond_with_vmap_rule(expensive, cheap, batched)(pred, *operands)
 
@@ -163,6 +178,15 @@ def in_groups(fun: Callable, group_size: int, keep_unbatched: bool = False) -> C
     intermediates fit in the core's cache run the same arithmetic faster (PPO's epochs: ~12% at 256
     configurations).
     """
+
+    def call(*args):
+        return _grouped(_traced(fun, *args), group_size, keep_unbatched)(*args)
+
+    return call
+
+
+def _grouped(fun: Callable, group_size: int, keep_unbatched: bool) -> Callable:
+    """``in_groups`` for one traced ``fun``."""
 
     @jax.custom_batching.custom_vmap
     def grouped(*args):

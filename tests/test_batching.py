@@ -133,3 +133,30 @@ def test_in_groups_keep_unbatched_compiles_small_batches_as_plain_vmap():
     assert broadcast != plain  # the default broadcasts unbatched arguments to the batch
     grouped = str(jax.make_jaxpr(jax.vmap(in_groups(fun, 2, keep_unbatched=True), (0, None)))(x, scale))
     assert "scan" in grouped and "scan" not in plain  # past group_size the groups are a loop
+
+
+def test_functions_are_traced_once_under_nested_vmap():
+    """Each helper's functions run their Python once per trace: the batching rules replay the recorded jaxpr
+    (LunarLander's step nests them, and a second trace of each level was a third of its compile's tracing)."""
+    calls = {"expensive": 0, "cheap": 0, "true": 0, "false": 0, "grouped": 0}
+
+    def counted(name, fun):
+        def wrapped(*args):
+            calls[name] += 1
+            return fun(*args)
+
+        return wrapped
+
+    def member(pred, x, y):
+        a = select_compacted(pred, counted("expensive", expensive), counted("cheap", cheap), x, y)
+        b = uniform_cond(pred, counted("true", expensive), counted("false", cheap), x, y)
+        return a, b
+
+    pred = jnp.arange(12).reshape(3, 4) % 3 == 0
+    x, y = jax.random.normal(jax.random.PRNGKey(0), (2, 3, 4))
+    step = in_groups(counted("grouped", member), 2)
+    got = jax.jit(jax.vmap(jax.vmap(step)))(pred, x, y)
+    assert calls == dict.fromkeys(calls, 1)
+    want = jax.vmap(jax.vmap(reference))(pred, x, y)
+    for value in got:
+        jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), value, want)
