@@ -229,22 +229,22 @@ def test_vmap_256_envs_300_steps_finite() -> None:
 
 
 def _short_episodes_rollout(step, env: LunarLander, n: int):
-    """A jitted 40-step rollout of `n` envs from the reset under random actions, stepped by `step` (vmapped),
-    episodes cut at 15 steps so that every reset happens in free flight (no chaotic contacts); returns
+    """A 40-step rollout of `n` envs from the reset under random actions, stepped by `step` (vmapped and jitted,
+    called from Python: a scan of so few envs would compile into one kernel under amjax's small-loop option, about
+    3x longer), episodes cut at 15 steps so that every reset happens in free flight (no chaotic contacts); returns
     (obs, reward, done) per step."""
     params = env.default_params.replace(max_steps_in_episode=15)
+    vmapped_step = jax.jit(jax.vmap(step, (0, 0, 0, None)))
 
-    @jax.jit
     def rollout(key):
         _, state = jax.vmap(env.reset, (0, None))(jax.random.split(key, n), params)
-
-        def body(state, key):
-            keys = jax.random.split(key, n)
-            action = jax.random.randint(key, (n,), 0, 4)
-            obs, state, reward, term, trunc, _ = jax.vmap(step, (0, 0, 0, None))(keys, state, action, params)
-            return state, (obs, reward, term | trunc)
-
-        return jax.lax.scan(body, state, jax.random.split(key, 40))[1]
+        steps = []
+        for step_key in jax.random.split(key, 40):
+            keys = jax.random.split(step_key, n)
+            action = jax.random.randint(step_key, (n,), 0, 4)
+            obs, state, reward, term, trunc, _ = vmapped_step(keys, state, action, params)
+            steps.append((obs, reward, term | trunc))
+        return jax.tree.map(lambda *x: np.stack(x), *jax.device_get(steps))
 
     return rollout
 
@@ -256,9 +256,9 @@ def test_auto_reset_matches_gymnax_select_both() -> None:
 
     env = LunarLander(velocity_iterations=4)  # a short solver compiles fast; the auto-reset logic is the same
     n, key = 8, jax.random.PRNGKey(4)
-    obs, reward, done = jax.device_get(_short_episodes_rollout(env.step, env, n)(key))
+    obs, reward, done = _short_episodes_rollout(env.step, env, n)(key)
     gymnax_step = lambda *a: environment.Environment.step.__wrapped__(env, *a)  # noqa: E731
-    ref_obs, ref_reward, ref_done = jax.device_get(_short_episodes_rollout(gymnax_step, env, n)(key))
+    ref_obs, ref_reward, ref_done = _short_episodes_rollout(gymnax_step, env, n)(key)
     assert done.sum() >= 2 * n and (done == ref_done).all()
     np.testing.assert_allclose(obs, ref_obs, atol=1e-5)
     np.testing.assert_allclose(reward, ref_reward, atol=1e-3)
@@ -269,16 +269,19 @@ def test_large_batch_steps_in_groups(monkeypatch) -> None:
     same as with the whole batch at once (to XLA's rounding), auto-resets included."""
     from amjax.envs.lunar_lander import env as env_module
 
-    env = LunarLander(velocity_iterations=4)  # a short solver compiles fast; the grouping is the same
-    n, key = 24, jax.random.PRNGKey(5)
+    env = LunarLander(velocity_iterations=4)  # a short solver; the grouping is the same
+    # Three groups of the real size: with small groups XLA compiles the group loop as one kernel (3x longer).
+    n, key = 3 * env_module.STEP_GROUP, jax.random.PRNGKey(5)
 
     def run(group):
         monkeypatch.setattr(env_module, "STEP_GROUP", group)  # read when `step` is traced
-        rollout = _short_episodes_rollout(env.step, env, n)
-        return jax.device_get(rollout(key)), str(jax.make_jaxpr(rollout)(key))
+        _, state = jax.vmap(env.reset, (0, None))(jax.random.split(key, n), env.default_params)
+        step_args = (jax.random.split(key, n), state, jnp.zeros(n, jnp.int32), env.default_params)
+        step_jaxpr = str(jax.make_jaxpr(jax.vmap(env.step, (0, 0, 0, None)))(*step_args))
+        return _short_episodes_rollout(env.step, env, n)(key), step_jaxpr
 
-    (obs, reward, done), grouped_jaxpr = run(8)  # 3 groups of 8
-    (ref_obs, ref_reward, ref_done), whole_jaxpr = run(1_000)
+    (obs, reward, done), grouped_jaxpr = run(env_module.STEP_GROUP)
+    (ref_obs, ref_reward, ref_done), whole_jaxpr = run(n)
     assert grouped_jaxpr.count("scan[") > whole_jaxpr.count("scan[")  # the groups are a loop: grouping took effect
     assert done.sum() >= 2 * n and (done == ref_done).all()
     np.testing.assert_allclose(obs, ref_obs, atol=1e-5)
