@@ -254,7 +254,7 @@ def test_auto_reset_matches_gymnax_select_both() -> None:
     every step and selects. Same keys, same results (to XLA's rounding: the two are different programs)."""
     from gymnax.environments import environment
 
-    env = LunarLander(velocity_iterations=4)  # a short solver compiles fast; the auto-reset logic is the same
+    env = LunarLander(velocity_iterations=4)  # a short solver; the auto-reset logic is the same
     n, key = 8, jax.random.PRNGKey(4)
     obs, reward, done = _short_episodes_rollout(env.step, env, n)(key)
     gymnax_step = lambda *a: environment.Environment.step.__wrapped__(env, *a)  # noqa: E731
