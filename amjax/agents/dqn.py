@@ -87,7 +87,7 @@ def init(config: DQNConfig, setup: Setup, key: jax.Array) -> DQNState:
 
     # The first n-1 transitions of each env, waiting for their n-step windows.
     envs, _, transitions, _ = rollout(env, env_params, envs, None, random_action, warmup_key, config.n_step - 1)
-    pending = transition_arrays(transitions)
+    pending = transition_arrays(config, transitions)
     return DQNState(
         params=params,
         target_params=params,
@@ -113,7 +113,9 @@ def update(config: DQNConfig, setup: Setup, state: DQNState) -> tuple[DQNState, 
     envs, _, transitions, _ = rollout(
         setup.env, setup.env_params, state.envs, None, act, rollout_key, config.train_freq
     )
-    window = jax.tree.map(lambda p, x: jnp.concatenate([p, x]), state.pending, transition_arrays(transitions))
+    window = jax.tree.map(
+        lambda p, x: jnp.concatenate([p, x]), state.pending, transition_arrays(config, transitions)
+    )
     items = n_step_transitions(window, config.n_step, config.gamma)  # complete for the first train_freq steps
     pending = jax.tree.map(lambda x: x[config.train_freq :], window)
     buffer = replay_add(state.buffer, jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), items))

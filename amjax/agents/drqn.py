@@ -138,8 +138,8 @@ def _policy(setup: Setup, params: Any, eps: jax.Array):
     return act
 
 
-def _steps(transitions: Any, first: jax.Array) -> dict[str, jax.Array]:
-    return {**transition_arrays(transitions), "first": first}
+def _steps(config: DRQNConfig, transitions: Any, first: jax.Array) -> dict[str, jax.Array]:
+    return {**transition_arrays(config, transitions), "first": first}
 
 
 def init(config: DRQNConfig, setup: Setup, key: jax.Array) -> DRQNState:
@@ -167,7 +167,7 @@ def init(config: DRQNConfig, setup: Setup, key: jax.Array) -> DRQNState:
         buffer=sequence_init(one_step, one_start, config.sequence_length, config.buffer_size),
         envs=envs,
         carry=carry,
-        pending={"steps": _steps(transitions, first), "carry": carries},
+        pending={"steps": _steps(config, transitions, first), "carry": carries},
         key=key_bits(key),
         env_steps=jnp.int32(0),
     )
@@ -273,7 +273,7 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
         setup.env, setup.env_params, state.envs, state.carry, act, rollout_key, config.train_freq
     )
     window, pending = sequence_windows(
-        state.pending, {"steps": _steps(transitions, first), "carry": carries}, config.train_freq
+        state.pending, {"steps": _steps(config, transitions, first), "carry": carries}, config.train_freq
     )
     start = jax.tree.map(lambda c: c[0], window["carry"])
     target_q = target_values(config, setup.network, state.target_params, window["steps"], start)

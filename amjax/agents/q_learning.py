@@ -46,6 +46,7 @@ class QLearningConfig(AgentConfig):
     epsilon_end: float = 0.05
     exploration_fraction: float = 0.3  # fraction of training over which epsilon decays linearly
     max_grad_norm: float = 10.0
+    reward_scale: float = 1.0  # rewards (measurement costs included) are stored multiplied by this
 
     WIDTH_FIELDS: ClassVar[tuple[str, ...]] = ("hidden",)
     TRACED_BOUNDS: ClassVar[dict[str, str]] = {
@@ -56,6 +57,7 @@ class QLearningConfig(AgentConfig):
         "epsilon_end": "unit",
         "exploration_fraction": "unit",
         "max_grad_norm": "positive",
+        "reward_scale": "positive",
     }
 
     def steps_per_update(self) -> int:
@@ -98,11 +100,12 @@ def epsilon_greedy(q: jax.Array, key: jax.Array, eps: jax.Array) -> jax.Array:
     return jnp.where(explore, random_action, greedy_action)
 
 
-def transition_arrays(transitions: Transition) -> dict[str, jax.Array]:
+def transition_arrays(config: QLearningConfig, transitions: Transition) -> dict[str, jax.Array]:
+    """The arrays of `transitions` that replay stores, rewards multiplied by `config.reward_scale` (exact at 1)."""
     return {
         "obs": transitions.obs,
         "action": transitions.action,
-        "reward": transitions.reward,
+        "reward": config.reward_scale * transitions.reward,
         "next_obs": transitions.next_obs,
         "terminated": transitions.terminated.astype(jnp.float32),
         "done": transitions.done.astype(jnp.float32),

@@ -335,3 +335,35 @@ def test_setup_puts_each_configurations_traced_cost_into_the_env_params(name):
     assert setup.max_steps == 200 and setup.num_actions == 4  # CartPole-v0: 2 controls x {skip, measure}
     vanilla = algo.setup(algo.config_type(vanilla=True))
     assert vanilla.num_actions == 2 and not hasattr(vanilla.env_params, "cost")
+
+
+@pytest.mark.parametrize("name", ["dqn", "drqn"])
+def test_reward_scale_multiplies_the_stored_rewards(name):
+    """Q-learning's traced `reward_scale` multiplies the rewards replay stores (measurement costs included): on the
+    same key, before learning starts, 0.5 stores exactly half of every reward 1.0 stores and everything else the
+    same."""
+    algo = ALGORITHMS[name]
+    base = TINY["dqn"] if name == "dqn" else DRQNConfig(total_timesteps=2048, eval_every=1024, buffer_size=64,
+                                                         learning_starts=1000, batch_size=4)
+    key = jax.random.PRNGKey(3)
+
+    @jax.jit
+    def three_updates(config):
+        setup = algo.setup(config)
+        state = algo.init(config, setup, key)
+        for _ in range(3):
+            state, _ = algo.update(config, setup, state)
+        return state.buffer
+
+    def stored(scale):
+        buffer = three_updates(base.replace(cost=0.2, reward_scale=scale).validate())
+        leaves = jax.tree_util.tree_flatten_with_path(buffer.storage)[0]
+        return {jax.tree_util.keystr(path): np.asarray(leaf) for path, leaf in leaves}, int(buffer.size)
+
+    (full, size), (half, _) = stored(1.0), stored(0.5)
+    rewards = [path for path in full if "reward" in path]
+    assert rewards and size > 0
+    for path, leaf in full.items():
+        expected = 0.5 * leaf if path in rewards else leaf
+        np.testing.assert_array_equal(half[path], expected, err_msg=path)
+    assert any(np.any(full[path][:size] != 0) for path in rewards)
