@@ -21,13 +21,14 @@ def test_replication_grid_is_the_papers():
     from amjax.sweep.grid import expand
 
     assert sum(len(expand(spec)) for spec in specs.values()) == 3 * 5 * 3 * 10
-    # LunarLander's PPO runs use the tuned settings, its DQN runs four envs at the default replay ratio
-    # (agent-scoped: DRQN keeps its defaults).
+    # LunarLander's PPO runs use the tuned settings, its DQN runs four envs at the default replay ratio with scaled
+    # rewards (agent-scoped: DRQN keeps its defaults).
     lunar = {r.agent: r.config for r in expand(specs["LunarLander-v3"])}
     assert lunar["ppo"].num_envs == 16 and lunar["ppo"].gamma == pytest.approx(0.999)
     assert lunar["ppo"].eval_policy == "greedy_control"  # a costed run's greedy policy crashes (docs/eval_policy.md)
     assert lunar["dqn"].gamma == pytest.approx(0.99) and lunar["dqn"].steps_per_update() == 4
     assert (lunar["dqn"].num_envs, lunar["dqn"].train_freq, lunar["drqn"].train_freq) == (4, 1, 8)
+    assert (lunar["dqn"].reward_scale, lunar["drqn"].reward_scale) == (0.1, 1.0)  # scaled rewards: DQN's preset only
     assert presets.replicate_specs(("LunarLander-v3",), ("drqn",))["LunarLander-v3"].hyperparams == {}
 
 
