@@ -27,13 +27,32 @@ import jax.numpy as jnp
 from jax.extend.core import jaxpr_as_fun
 
 
+def varying_axes(x: Any) -> frozenset:
+    """The ``shard_map`` manual axes that ``x`` varies over (empty outside ``shard_map``)."""
+    aval = jax.typeof(x)
+    axis_type = getattr(aval, "manual_axis_type", None)
+    return frozenset(axis_type.varying if axis_type is not None else getattr(aval, "vma", ()))
+
+
 def _traced(fun: Callable, *operands: Any) -> Callable:
     """``fun`` traced once at the per-member types of ``operands`` (tracers of an enclosing ``vmap`` give their
     member's type); the result replays the recorded jaxpr, source lines included, on operands of the same
-    structure, and a ``vmap`` of it batches that jaxpr without running ``fun``'s Python again."""
+    structure, and a ``vmap`` of it batches that jaxpr without running ``fun``'s Python again.
+
+    Under ``shard_map`` the recorded program holds the casts that its operands' varying manual axes needed then.
+    Operands that vary over other axes (rows gathered by a varying index vary even where the operand did not) run
+    ``fun`` itself, which casts for them, so the default ``check_vma=True`` holds."""
     closed, out_shape = jax.make_jaxpr(fun, return_shape=True)(*operands)
     replay, out_tree = jaxpr_as_fun(closed), jax.tree.structure(out_shape)
-    return lambda *args: jax.tree.unflatten(out_tree, replay(*jax.tree.leaves(args)))
+    recorded = [varying_axes(leaf) for leaf in jax.tree.leaves(operands)]
+
+    def call(*args):
+        leaves = jax.tree.leaves(args)
+        if [varying_axes(leaf) for leaf in leaves] != recorded:
+            return fun(*args)
+        return jax.tree.unflatten(out_tree, replay(*leaves))
+
+    return call
 
 
 def _broadcast(operands: Sequence[Any], batched: Sequence[Any], axis_size: int) -> list[Any]:
@@ -210,4 +229,4 @@ def _grouped(fun: Callable, group_size: int, keep_unbatched: bool) -> Callable:
     return grouped
 
 
-__all__ = ["in_groups", "select_compacted", "uniform_cond"]
+__all__ = ["in_groups", "select_compacted", "uniform_cond", "varying_axes"]

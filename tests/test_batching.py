@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from jax.sharding import Mesh, PartitionSpec
 
 from amjax.batching import in_groups, select_compacted, uniform_cond
 
@@ -160,3 +161,34 @@ def test_functions_are_traced_once_under_nested_vmap():
     want = jax.vmap(jax.vmap(reference))(pred, x, y)
     for value in got:
         jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), value, want)
+
+
+def test_helpers_hold_shard_maps_varying_axes_check():
+    """Inside `jax.shard_map` (default `check_vma=True`) with an operand that does not vary over the mesh: rows
+    gathered by a varying index vary where that operand did not when `expensive` was traced, so the recorded
+    program no longer fits them and `expensive` runs again at their types (the LunarLander step's auto-reset)."""
+    calls = {"expensive": 0}
+
+    def mixed(x, scale):  # a constant meets the unvarying `scale`: no cast recorded while `scale` is unvarying
+        calls["expensive"] += 1
+        return {"a": jnp.sin(x) * (scale * jnp.float32(2.0)), "b": x - scale}
+
+    def member(pred, x, scale):
+        a = select_compacted(pred, mixed, cheap, x, scale, min_chunk=1)
+        b = uniform_cond(pred, mixed, cheap, x, scale)
+        return (a, b), in_groups(lambda x: x * scale, 4)(x)
+
+    def per_device(pred, x):
+        return jax.vmap(member, (0, 0, None))(pred, x, jnp.float32(0.5))
+
+    devices = jax.devices()
+    mesh, spec = Mesh(np.array(devices), ("rows",)), PartitionSpec("rows")
+    size = 32 * len(devices)
+    pred = jnp.arange(size) % 3 == 0
+    x = jax.random.normal(jax.random.PRNGKey(0), (size,))
+    (a, b), grouped = jax.jit(jax.shard_map(per_device, mesh=mesh, in_specs=spec, out_specs=spec))(pred, x)
+    assert calls["expensive"] >= 2  # traced once, then again for the gathered rows
+    want = {"a": jnp.where(pred, jnp.sin(x), x + 0.5), "b": jnp.where(pred, x - 0.5, x - 0.5)}
+    for got in (a, b):
+        jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), got, want)
+    np.testing.assert_allclose(grouped, x * 0.5, rtol=1e-6)

@@ -8,6 +8,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from amjax.batching import varying_axes
+
 
 def materialized(fn: Callable, *operands: Any) -> Any:
     """``fn(*operands)`` with its outputs computed once, not re-derived inside each consumer kernel.
@@ -31,13 +33,6 @@ def materialized(fn: Callable, *operands: Any) -> Any:
     return jax.lax.cond(jax.lax.optimization_barrier(jnp.int32(0)) >= 0, fn, never, *operands)
 
 
-def _varying_axes(x: jax.Array) -> frozenset:
-    """The ``shard_map`` manual axes that ``x`` varies over (empty outside ``shard_map``)."""
-    aval = jax.typeof(x)
-    axis_type = getattr(aval, "manual_axis_type", None)
-    return frozenset(axis_type.varying if axis_type is not None else getattr(aval, "vma", ()))
-
-
 def vary_together(tree: Any) -> Any:
     """``tree`` with every leaf varying over ``shard_map``'s manual axes as much as any leaf does.
 
@@ -47,10 +42,10 @@ def vary_together(tree: Any) -> Any:
     """
     leaves, treedef = jax.tree.flatten(tree)
     leaves = [jnp.asarray(leaf) for leaf in leaves]
-    axes = frozenset().union(*(_varying_axes(leaf) for leaf in leaves))
+    axes = frozenset().union(*(varying_axes(leaf) for leaf in leaves))
 
     def vary(x):
-        missing = axes - _varying_axes(x)
+        missing = axes - varying_axes(x)
         return jax.lax.pcast(x, tuple(sorted(missing)), to="varying") if missing else x
 
     return jax.tree.unflatten(treedef, [vary(leaf) for leaf in leaves])
