@@ -19,6 +19,7 @@ import dataclasses
 import functools
 import math
 import os
+import platform
 import re
 import warnings
 from collections.abc import Callable
@@ -32,6 +33,16 @@ import numpy as np
 def usable_cores() -> int:
     """CPU cores this process may run on (its affinity mask where the OS has one)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo's, else the platform's), e.g. "AMD EPYC": with the device count, what
+    sets XLA's float rounding, so runs are bit-identical only where both are the same."""
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            return next(line.split(":", 1)[1].strip() for line in cpuinfo if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine() or "unknown CPU"
 
 
 # Loops that access less than this many bytes per iteration (HloCostAnalysis) become one kernel each.

@@ -20,21 +20,59 @@ class FolderBusyError(RuntimeError):
     """Another live process is writing to the same output folder."""
 
 
+class WriteError(OSError):
+    """The disk refused a write (no space, quota, permissions, read-only): names the file; whatever was on disk
+    before the write is unchanged."""
+
+    def __init__(self, path: Path, error: OSError):
+        reason = error.strerror or str(error)
+        super().__init__(error.errno, f"cannot write {path}: {reason}")
+        self.path = Path(path)
+
+
+def _sync(path: str | Path) -> None:
+    """Flush a file's (or a folder's entries') data to the disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def commit(source: Path, target: Path) -> None:
+    """Rename `source` over `target` (same filesystem) and make the rename durable: the one step that makes a
+    write visible. Every file of a sweep folder appears through it (`atomic_write`, the cluster's merges)."""
+    os.replace(source, target)
+    with contextlib.suppress(OSError):  # some filesystems cannot sync a folder; the rename itself is atomic
+        _sync(Path(target).parent)
+
+
 def atomic_write(path: Path, write: Callable[[str], None]) -> None:
-    """Call `write(tmp_path)` then rename over `path`: readers see the old file or the new one, never half.
+    """Call `write(tmp_path)`, flush it to disk, then rename it over `path` (`commit`): readers see the old file or
+    the new one, never half, and a file that is there after a crash is whole.
 
     The temporary file is `.<name>.<random>.partial` beside `path`; a process killed mid-write (SIGKILL, power
-    loss) leaves it behind, and `remove_partial_writes` clears it on the next run.
+    loss) leaves it behind, and `remove_partial_writes` clears it on the next run. A write the disk refuses
+    (OSError: no space, permissions, ...) raises `WriteError` naming `path` and leaves the old file as it was.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=PARTIAL_SUFFIX, dir=path.parent)
-    os.close(fd)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=PARTIAL_SUFFIX, dir=path.parent)
+        os.close(fd)
         write(tmp)
-        os.replace(tmp, path)
+        _sync(tmp)
+        commit(Path(tmp), path)
+    except OSError as error:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+        if isinstance(error, WriteError):
+            raise
+        raise WriteError(path, error) from error
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
         raise
 
 

@@ -1,6 +1,7 @@
 """Command line: `amjax sweep ...`, `demo`, `presets`, `report` and `replicate` (also `python -m train ...`).
 
-Bad flags exit with status 2 and a message before anything is written or compiled.
+Bad flags exit with status 2 and a message before anything is written or compiled. A write the disk refuses (no
+space, no permission, read-only) also exits with status 2 and a message; what was finished stays on disk.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import jax
 import pandas as pd
 
 import amjax
+from amjax.cores import cpu_model
 
 # The CLI is an application: every core for its sweeps, asked for before gymnax (imported below) starts JAX.
 amjax.use_all_cores()
@@ -24,10 +26,17 @@ from amjax.agents import ALGORITHMS  # noqa: E402
 from amjax.envs.registry import make_env  # noqa: E402
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep  # noqa: E402
 from amjax.sweep.cluster import ClusterError  # noqa: E402
+from amjax.sweep.devices import sweep_devices  # noqa: E402
 from amjax.sweep.grid import MAX_CONFIGS, expand, round_schedule  # noqa: E402
 from amjax.sweep.storage import UnreadableFileError  # noqa: E402
 from train import pareto, replicate, report  # noqa: E402
-from train.flags import add_cluster_arguments, add_logging_arguments, cluster_from_args, make_loggers  # noqa: E402
+from train.flags import (  # noqa: E402
+    add_cluster_arguments,
+    add_logging_arguments,
+    cluster_from_args,
+    disk_error_message,
+    make_loggers,
+)
 from train.presets import PRESETS, REPLICATE_HYPERPARAMS  # noqa: E402
 
 
@@ -165,6 +174,15 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
     return spec
 
 
+def describe_devices() -> str:
+    """What a sweep's configurations are split over, e.g. "2 CPU devices (AMD EPYC)": results are bit-identical
+    only on the same count and CPU model (XLA's float rounding depends on both, and training amplifies it)."""
+    devices = sweep_devices()
+    kind = devices[0].platform.upper()
+    model = cpu_model() if kind == "CPU" else devices[0].device_kind
+    return f"{len(devices)} {kind} device{'s' if len(devices) > 1 else ''} ({model})"
+
+
 def format_table(table: pd.DataFrame) -> str:
     """The seed table as text: median [q25, q75] of best costed reward and measured fraction, and the median
     re-scored costed reward of the best policies on fresh episodes with its measured fraction."""
@@ -206,6 +224,17 @@ _SEED_TABLE_COLUMNS = {
 def main(argv: Sequence[str] | None = None, prog: str = "python -m train") -> int:
     parser = build_parser(prog)
     args = parser.parse_args(argv)
+    try:
+        return _run(parser, args)
+    except OSError as error:  # a full or read-only disk: a message and status 2, never a traceback
+        message = disk_error_message(error, getattr(args, "out", None))
+        if message is None:
+            raise
+        print(f"{parser.prog}: error: {message}", file=sys.stderr)
+        return 2
+
+
+def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command == "report":
         return report.run(args)
     if args.command == "replicate":
@@ -238,6 +267,7 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m train") -> in
         loggers = make_loggers(args, args.out)
     except (ValueError, TypeError, ImportError) as error:
         parser.error(str(error))  # exits with status 2
+    print(f"{parser.prog}: {describe_devices()}")
     try:
         result = run_sweep(spec, args.out, max_batch=max_batch, progress=not args.no_progress, loggers=loggers,
                            metadata=metadata, cluster=cluster, cluster_parameters=cluster_parameters)

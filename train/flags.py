@@ -1,8 +1,10 @@
-"""Flags that several commands share (sweep, replicate): optional per-configuration logging, cluster targets."""
+"""Flags that several commands share (sweep, replicate): optional per-configuration logging, cluster targets;
+and the message for a write the disk refuses, which every command gives the same way."""
 
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 from pathlib import Path
 from typing import Any
@@ -67,3 +69,20 @@ def cluster_from_args(args: argparse.Namespace) -> tuple[str | None, dict[str, A
         message = str(error).replace("cluster_parameters: ", "--cluster-option: ").replace("cluster: ", "--cluster: ")
         raise type(error)(message) from None
     return target, parameters
+
+
+# What a full or protected disk raises: the command stops with a message, not a traceback.
+DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS}
+
+
+def disk_error_message(error: OSError, out: str | None) -> str | None:
+    """The message for a write the disk refused (None if `error` is not one): what failed, and that a rerun of the
+    same command resumes once there is space (or permission), every batch finished before kept."""
+    if error.errno not in DISK_ERRNOS:
+        return None
+    what = error.strerror or str(error)
+    if error.filename and str(error.filename) not in what:
+        what = f"{what}: {error.filename}"
+    kept = f" in {out}" if out else ""
+    return (f"{what} [{errno.errorcode.get(error.errno, error.errno)}]. Everything finished before it is kept{kept}; "
+            "free some space (or fix the permissions) and rerun the same command to resume")

@@ -35,7 +35,7 @@ from typing import Any
 
 import pandas as pd
 
-from amjax.files import FolderBusyError, atomic_write, folder_lock, remove_partial_writes
+from amjax.files import FolderBusyError, atomic_write, commit, folder_lock, remove_partial_writes
 from amjax.sweep import storage
 
 CLUSTER_TARGETS = ("local:N (N worker processes on this machine) or slurm:PARTITION[:JOBS] (Slurm jobs on "
@@ -199,8 +199,9 @@ def train_part(spec_json: dict[str, Any], out: str, batch_name: str, max_batch: 
     info = {"batch": batch_name, "node": socket.gethostname(), "pid": os.getpid(), "devices": len(devices)}
     with folder_lock(part, wait=True):  # a worker left by a killed driver finishes first
         remove_partial_writes(part)
-        if storage.all_rescored(storage.read_table(out_path / "rescored"), config_ids):  # merged already
-            return {**info, "seconds": 0.0}
+        if storage.batch_complete(out_path, batch_name, storage.read_table(out_path / "results"),
+                                  storage.read_table(out_path / "rescored"), options["save_policies"]):
+            return {**info, "seconds": 0.0}  # merged already
         storage.write_json(part / "worker.json", info)
         _copy_checkpoint(out_path, part, batch_name, config_ids)
         start = time.monotonic()
@@ -213,25 +214,32 @@ def train_part(spec_json: dict[str, Any], out: str, batch_name: str, max_batch: 
     return {**info, "seconds": round(time.monotonic() - start, 1)}
 
 
-def merge_part(out: Path, batch_name: str, results: pd.DataFrame | None,
-               rescored: pd.DataFrame | None) -> tuple[pd.DataFrame | None, pd.DataFrame | None, pd.DataFrame | None]:
+def merge_part(out: Path, batch_name: str, results: pd.DataFrame | None, rescored: pd.DataFrame | None,
+               policies: bool = True) -> tuple[pd.DataFrame | None, pd.DataFrame | None, pd.DataFrame | None]:
     """Fold the part of `batch_name` into `out`, then remove it; returns results, rescored and the rows taken from
-    the part (None if none). A part is taken whole (rows keyed, never duplicated; checkpoint, policies, re-scores)
-    when it is ahead of `out`: finished, or checkpointed further than `out`'s checkpoint of the batch, and its
-    batch not finished in `out` already; otherwise it is dropped (a worker of a killed driver that fell behind).
+    the part (None if none). A part is taken when it is ahead of `out`: finished (its commit marker), or
+    checkpointed further than `out`'s checkpoint of the batch; and not when `out` holds the batch finished already
+    (a worker of a killed driver that fell behind, or a part merged before a kill). `policies`: whether the sweep
+    keeps policies (what "finished" includes).
+
+    Crash consistency: rows and re-scores are merged first (keyed: merging twice changes nothing), then the
+    checkpoint and policies are moved, then the batch's marker is written in `out`, and only then is the part
+    removed. A driver killed at any point leaves a part that is still ahead, or `out` with the batch committed, so
+    the next merge completes it; no file is ever only in a part that is being removed.
     Raises FolderBusyError if a worker still holds the part."""
     part = part_folder(out, batch_name)
     checkpoint = storage.checkpoint_path(Path(), batch_name)
     with folder_lock(part, argument=f"parts/{batch_name}"):
         rows = storage.read_table(part / "results")
-        part_rescored = storage.read_table(part / "rescored")
-        ahead = part_rescored is not None or (
+        marker = storage.read_marker(part, batch_name)
+        ahead = marker is not None or (
             storage.checkpoint_evals(part / checkpoint) > storage.checkpoint_evals(out / checkpoint))
-        if rows is None or not ahead or storage.all_rescored(rescored, rows.config_id.unique()):
+        if rows is None or not ahead or storage.batch_complete(out, batch_name, results, rescored, policies):
             rows = None
         else:
             results = storage.merge_rows(results, rows)
             storage.write_table(out / "results", results)
+            part_rescored = storage.read_table(part / "rescored")
             if part_rescored is not None:
                 rescored = storage.merge_by_config(rescored, part_rescored)
                 storage.write_table(out / "rescored", rescored)
@@ -239,20 +247,22 @@ def merge_part(out: Path, batch_name: str, results: pd.DataFrame | None,
                 if path.exists():
                     target = out / path.relative_to(part)
                     target.parent.mkdir(exist_ok=True)
-                    os.replace(path, target)
+                    commit(path, target)
+            if marker is not None and storage.marker_files_present(out, marker, results, rescored, policies):
+                storage.write_marker(out, marker)
         shutil.rmtree(part)
     with contextlib.suppress(OSError):  # the last part: no empty parts/ left behind
         part.parent.rmdir()
     return results, rescored, rows
 
 
-def merge_parts(out: Path, results: pd.DataFrame | None,
-                rescored: pd.DataFrame | None) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
+def merge_parts(out: Path, results: pd.DataFrame | None, rescored: pd.DataFrame | None,
+                policies: bool = True) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
     """Fold every part that no worker holds into `out` (a cluster run that was stopped); the local runner and the
     driver call this when they open a folder."""
     for part in sorted((Path(out) / PARTS).glob("*/")):
         with contextlib.suppress(FolderBusyError):  # its worker still runs: its next job waits for it
-            results, rescored, _ = merge_part(out, part.name, results, rescored)
+            results, rescored, _ = merge_part(out, part.name, results, rescored, policies)
     remove_job_pickles(out)
     return results, rescored
 
@@ -275,12 +285,12 @@ def drive(spec: Any, out: Path, batches: Sequence[Any], results: pd.DataFrame | 
           options: dict[str, Any], bar: Any, *, parameters: Mapping[str, Any] | None = None,
           record: Callable[[str, dict[str, Any]], None],
           on_rows: Callable[[pd.DataFrame, pd.DataFrame], None]) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
-    """Run every unfinished batch on the cluster, at most `target.workers` at once, each worker on `num_devices`
-    devices (the driver's: `batches` were planned for them); fold each finished part into
-    `out`, call `on_rows(new_rows, results)` and `record(batch, where_it_ran)`. A failed job is submitted again
-    (the worker resumes from the part's checkpoint); Ctrl-C cancels the running jobs."""
-    queue = [b for b in batches if not storage.all_rescored(rescored, [r.config_id for r in b.runs])]
-    bar.update(sum(len(b.runs) for b in batches if b not in queue) * spec.total_timesteps)
+    """Run `batches` (those not finished in `out`) on the cluster, at most `target.workers` at once, each worker on
+    `num_devices` devices (the driver's: `batches` were planned for them); fold each finished part into `out`,
+    call `on_rows(new_rows, results)` and `record(batch, where_it_ran)`. A failed job is submitted again (the
+    worker resumes from the part's checkpoint); Ctrl-C cancels the running jobs."""
+    queue = list(batches)
+    policies = options["save_policies"]
     executor = make_executor(target, out / LOGS, num_devices, parameters)
     running: dict[str, tuple[Any, Any]] = {}
     attempts: dict[str, int] = {}
@@ -330,7 +340,7 @@ def drive(spec: Any, out: Path, batches: Sequence[Any], results: pd.DataFrame | 
                     run_again(batch, job, error)
                     continue
                 try:
-                    results, rescored, rows = merge_part(out, name, results, rescored)
+                    results, rescored, rows = merge_part(out, name, results, rescored, policies)
                 except FolderBusyError:  # a worker of an earlier driver took the part after this job: wait
                     attempts[name] -= 1  # not a failure
                     _delete_job_files(job)

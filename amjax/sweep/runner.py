@@ -2,8 +2,13 @@
 batch, in chunks of evaluation periods, with progress, results written after each chunk and train states
 checkpointed, so that killing the process at any moment and rerunning the same call resumes where it stopped.
 
-Results and checkpoints are written atomically, results first: a rerun recomputes at most the work after the
-last checkpoint (training is deterministic), and rows are keyed by (config_id, env_steps) so none is duplicated.
+Every file is written atomically (`amjax.files.atomic_write`: a temporary file, flushed, then one durable rename),
+results before checkpoints: a rerun recomputes at most the work after the last checkpoint (training is
+deterministic), and rows are keyed by (config_id, env_steps) so none is duplicated. A batch is finished when its
+commit marker (`finished/<batch>.json`) is there, written last, after its rows, re-scores, policies and final
+checkpoint; a rerun that finds a marker without all of those files, or the files without a marker, redoes what is
+missing (`_batch_state`), so a kill at any instant loses no finished work (tests/sweep/test_crash_points.py kills
+it at every rename).
 
 Batches' programs are compiled ahead of time on a background thread (`CompileQueue`) while batches train;
 finished batches are skipped without compiling.
@@ -38,6 +43,7 @@ from amjax.sweep.cluster import PARTS, check_engine, check_parameters, drive, me
 from amjax.sweep.devices import config_sharding, sweep_devices
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 from amjax.sweep.loggers import RunLogger
+from amjax.sweep.storage import policy_path
 
 
 class SweepMismatchError(ValueError):
@@ -70,22 +76,29 @@ def _rescored_rows(batch: Batch, configs: Any, states: Any, programs: BatchProgr
 
 
 def _check_memory(batches: Sequence[Batch], memory: int) -> None:
-    """Refuse, before anything is written or compiled, a batch whose train states (sized without allocating them:
-    `jax.eval_shape`) would not fit in `memory` bytes three times over (the states, the chunk's new states and
-    the checkpoint's copy)."""
-    sizes: dict[tuple[Any, ...], int] = {}
+    """Refuse, before anything is written or compiled, a batch whose train states would not fit in `memory` bytes
+    three times over (the states, the chunk's new states and the checkpoint's copy)."""
     for batch in batches:
-        key = (batch.runs[0].config.static_key(), batch.size)
-        if key not in sizes:
-            configs, keys = batch.stacked()
-            shapes = jax.eval_shape(
-                jax.vmap(lambda c, k, algo=batch.algo: init_run(algo, c, k)), configs, keys)
-            sizes[key] = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes))
-        if 3 * sizes[key] > memory:
+        size = _state_shapes(batch)[1]
+        if 3 * size > memory:
             raise SweepTooLargeError(
                 f"the train states of {batch.size} {batch.algo.name} configurations take "
-                f"{sizes[key] / 2**30:.1f} GiB (3x that while training) and this machine has {memory / 2**30:.1f} "
+                f"{size / 2**30:.1f} GiB (3x that while training) and this machine has {memory / 2**30:.1f} "
                 "GiB: lower --max-batch (max_batch), or the fields that size them (num_envs, buffer_size, ...)")
+
+
+_SHAPES: dict[tuple[Any, ...], tuple[Any, int]] = {}  # (agent, static fields, batch size) -> (shapes, bytes)
+
+
+def _state_shapes(batch: Batch) -> tuple[Any, int]:
+    """The shapes of a batch's train states and their bytes, sized without allocating them (`jax.eval_shape`);
+    the same for every batch of a compiled group and size, so traced once per process."""
+    key = (batch.algo.name, batch.runs[0].config.static_key(), batch.size)
+    if key not in _SHAPES:
+        configs, keys = batch.stacked()
+        shapes = jax.eval_shape(jax.vmap(lambda c, k: init_run(batch.algo, c, k)), configs, keys)
+        _SHAPES[key] = shapes, sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes))
+    return _SHAPES[key]
 
 
 def _memory_bytes() -> int:
@@ -125,11 +138,6 @@ def _group_configs(runs: Sequence[RunConfig]) -> list[dict[str, Any]]:
     ]
 
 
-def policy_path(out: str | Path, config_id: str) -> Path:
-    """Where a sweep keeps the best policy of configuration `config_id`."""
-    return Path(out) / "policies" / f"{config_id}.msgpack"
-
-
 def load_sweep_policy(out: str | Path, config_id: str) -> SavedPolicy:
     """The best policy a sweep in `out` saved for `config_id` (see its results' config_id column)."""
     path = policy_path(out, config_id)
@@ -146,12 +154,14 @@ def _save_policies(
     out: Path, batch: Batch, states: Any, evals_done: int, results: pd.DataFrame, rescored: pd.DataFrame | None
 ) -> None:
     """Write each real configuration's best policy so far (parameters of its best evaluation), with its re-scored
-    figures once the configuration has finished."""
+    figures (`rescored`: the sweep's re-scoring table) once the configuration has them."""
     best_params, best_return, best_fraction = jax.device_get(
         (states.best_params, states.best_return, states.best_measured_fraction)
     )
     healthy = results[~results.diverged & results.eval_return.notna()]
     best_steps = healthy.loc[healthy.groupby("config_id").eval_return.idxmax()].set_index("config_id").env_steps
+    scores = (pd.DataFrame() if rescored is None
+              else rescored.set_index("config_id").drop(columns="best_policy_episodes", errors="ignore"))
     for i, run in enumerate(batch.runs):
         info = {
             "config_id": run.config_id, "env": run.env, "agent": run.agent, "vanilla": run.vanilla,
@@ -160,8 +170,8 @@ def _save_policies(
             "best_env_steps": int(best_steps.get(run.config_id, 0)),
             "trained_env_steps": evals_done * run.config.eval_every,
         }
-        if rescored is not None and run.config_id in rescored.index:
-            info.update({k: float(v) for k, v in rescored.loc[run.config_id].items()})
+        if run.config_id in scores.index:
+            info.update({k: float(v) for k, v in scores.loc[run.config_id].items()})
         params = jax.tree.map(operator.itemgetter(i), best_params)
         save_policy(policy_path(out, run.config_id), run.config, params, info)
 
@@ -223,9 +233,9 @@ def _train_batch(
     rescored: pd.DataFrame | None,
     programs: BatchPrograms | None = None,
 ) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
-    """Train (or resume) one batch chunk by chunk, writing rows after every chunk, then re-score its best policies;
-    returns the results and re-scoring tables. `programs`: the batch's programs compiled ahead (`compile_batch`);
-    compiled here if not given."""
+    """Train (or resume) one batch chunk by chunk, writing rows after every chunk, then re-score its best policies
+    and commit it (`_finish_batch`); returns the results and re-scoring tables. `programs`: the batch's programs
+    compiled ahead (`compile_batch`); compiled here if not given."""
     config0 = batch.runs[0].config
     num_evals = config0.num_evals
     if programs is None:
@@ -235,7 +245,9 @@ def _train_batch(
     configs = programs.configs
     states = jax.device_get(programs.init(configs, programs.keys))
     evals_done = 0
-    if ckpt_path.exists():  # it holds the real configurations' rows only, whatever the padding was
+    # A checkpoint is used only if the rows it went past are all on disk (they are written first; a folder whose
+    # rows were lost trains the batch again from the start, which reproduces them).
+    if ckpt_path.exists() and storage.checkpoint_evals(ckpt_path) <= _evals_with_rows(batch, results):
         real_rows, evals_done = storage.load_checkpoint(ckpt_path, _real(batch, states))
         states = batch.pad(real_rows)
     # Plain (strongly typed) arrays, fresh or restored alike, so both hit one compiled chunk program, split over
@@ -248,7 +260,7 @@ def _train_batch(
     last_checkpoint = time.monotonic()
     # Checkpoints are written on a thread of their own while the next chunk trains (a LunarLander-v3 Dueling DQN
     # batch's is 340 MB, about 1.3 s); a chunk's rows are always on disk before its checkpoint is started, and the
-    # batch waits for its last checkpoint before it returns.
+    # batch is committed only once its last checkpoint is written.
     with ThreadPoolExecutor(1, thread_name_prefix="amjax-checkpoint") as writer:
         pending: Future | None = None
         while evals_done < num_evals:
@@ -278,25 +290,75 @@ def _train_batch(
             bar.update(steps)
             if on_chunk is not None:
                 on_chunk(results)
-        if not storage.all_rescored(rescored, (run.config_id for run in batch.runs)):  # finished now, or before a kill
+
+        def rescore() -> pd.DataFrame:
             bar.set_description(f"{label}, re-scoring the best policies")
-            new = _rescored_rows(batch, configs, states, programs)
-            rescored = storage.merge_by_config(rescored, new)
-            storage.write_table(out / "rescored", rescored)
-            if save_policies:
-                _save_policies(out, batch, states, num_evals, results,
-                               new.set_index("config_id").drop(columns="best_policy_episodes"))
-            bar.set_description(label)
-        if pending is not None:
-            pending.result()
+            return _rescored_rows(batch, configs, states, programs)
+
+        # The re-scoring overlaps the last checkpoint's write; the commit waits for it.
+        rescored = _finish_batch(out, batch, _real(batch, states), results, rescored, save_policies, rescore,
+                                 wait=lambda: pending is None or pending.result())
+        bar.set_description(label)
     return results, rescored
 
 
-def _batch_finished(out: Path, batch: Batch, rescored: pd.DataFrame | None) -> bool:
-    """Whether a rerun has nothing left to do for `batch`: its checkpoint holds every evaluation and each of its
-    configurations is re-scored."""
-    return (storage.all_rescored(rescored, (run.config_id for run in batch.runs))
-            and storage.checkpoint_evals(storage.checkpoint_path(out, batch.name)) == batch.runs[0].config.num_evals)
+def _finish_batch(
+    out: Path,
+    batch: Batch,
+    states: Any,
+    results: pd.DataFrame,
+    rescored: pd.DataFrame | None,
+    save_policies: bool,
+    rescore: Callable[[], pd.DataFrame] | None,
+    wait: Callable[[], Any] = lambda: None,
+) -> pd.DataFrame | None:
+    """Complete a trained batch in `out` and commit it: its re-scores (`rescore()`, unless the table has them from
+    before a kill), its final policies (`states`: the real configurations' final train states), then, after
+    `wait()` (its last checkpoint's write), its marker, the one file that says the batch is finished. Returns the
+    re-scoring table."""
+    ids = [run.config_id for run in batch.runs]
+    if not storage.all_rescored(rescored, ids):
+        rescored = storage.merge_by_config(rescored, rescore())
+        storage.write_table(out / "rescored", rescored)
+    config0 = batch.runs[0].config
+    if save_policies:
+        _save_policies(out, batch, states, config0.num_evals, results, rescored[rescored.config_id.isin(ids)])
+    wait()
+    storage.write_marker(out, storage.batch_marker(batch.name, ids, config0.num_evals, config0.eval_every,
+                                                   save_policies))
+    return rescored
+
+
+def _evals_with_rows(batch: Batch, results: pd.DataFrame | None) -> int:
+    return storage.evals_with_rows(results, (run.config_id for run in batch.runs), batch.runs[0].config.eval_every)
+
+
+# What a rerun has left to do for a batch (`_batch_state`).
+DONE = "done"  # committed, every file there: nothing
+COMMIT = "commit"  # trained, checkpointed and re-scored (killed before its commit): policies and marker, no compile
+TRAIN = "train"  # train (or resume), re-score and commit: its programs are compiled
+
+
+def _batch_state(out: Path, batch: Batch, results: pd.DataFrame | None, rescored: pd.DataFrame | None,
+                 save_policies: bool) -> str:
+    """DONE, COMMIT or TRAIN for `batch` in `out`; a marker whose files are not all there counts as none."""
+    if storage.batch_complete(out, batch.name, results, rescored, save_policies):
+        return DONE
+    num_evals = batch.runs[0].config.num_evals
+    if (storage.checkpoint_evals(storage.checkpoint_path(out, batch.name)) == num_evals
+            and _evals_with_rows(batch, results) >= num_evals
+            and storage.all_rescored(rescored, (run.config_id for run in batch.runs))):
+        return COMMIT
+    return TRAIN
+
+
+def _commit_trained(out: Path, batch: Batch, results: pd.DataFrame, rescored: pd.DataFrame,
+                    save_policies: bool) -> None:
+    """Commit a COMMIT batch from its final checkpoint (sized with `jax.eval_shape`: nothing compiles)."""
+    shapes = _state_shapes(batch)[0]
+    real = jax.tree.map(lambda x: jax.ShapeDtypeStruct((len(batch.runs), *x.shape[1:]), x.dtype), shapes)
+    states, _ = storage.load_checkpoint(storage.checkpoint_path(out, batch.name), real)
+    _finish_batch(out, batch, states, results, rescored, save_policies, rescore=None)
 
 
 class CompileQueue:
@@ -339,9 +401,10 @@ class CompileQueue:
         `out`), in its order."""
         devices = tuple(devices or sweep_devices())
         out = Path(out)
-        rescored = storage.read_table(out / "rescored") if out.is_dir() else None
+        results, rescored = ((storage.read_table(out / "results"), storage.read_table(out / "rescored"))
+                             if out.is_dir() else (None, None))
         for batch in plan_batches(expand(spec), max_batch, len(devices)):
-            if not _batch_finished(out, batch, rescored):
+            if _batch_state(out, batch, results, rescored, save_policies=True) == TRAIN:
                 self.submit(batch, target_chunks, devices)
 
     def cancel(self) -> None:
@@ -395,7 +458,8 @@ def run_sweep(
       on_chunk: called with the full results table after every chunk (e.g. to draw live plots); on a cluster,
         after each batch is folded in.
       save_policies: keep each configuration's best policy in `out/policies/<config_id>.msgpack` (written with
-        every checkpoint; load one with `load_sweep_policy(out, config_id)`).
+        every checkpoint, and with its re-scores before its batch is committed; load one with
+        `load_sweep_policy(out, config_id)`).
       loggers: also send each chunk's new rows to these (e.g. `TensorBoardLogger(out / "tensorboard")`,
         `WandbLogger(project, out)`); they are closed when the sweep ends or stops.
       devices: the devices each batch's configurations are split over (default: `sweep_devices()`, every local
@@ -414,6 +478,8 @@ def run_sweep(
         batch while the sweep before it trains (not used with `cluster`).
 
     Raises:
+      WriteError (an OSError): the disk refused a write (no space, permissions); what was committed stays, and
+        the same call resumes once the disk accepts writes again.
       SweepMismatchError: `out` holds a different sweep.
       SweepTooLargeError: a batch's train states would not fit in memory (checked before anything is written).
       FolderBusyError: another running process is writing to `out`.
@@ -441,15 +507,19 @@ def run_sweep(
         wall_time = storage.WallTime(out / "wall_time.json")
         # Parts a cluster run left (stopped before it folded them in): their rows and checkpoints, so either
         # runner resumes where the other stopped.
-        results, rescored = merge_parts(out, storage.read_table(out / "results"), storage.read_table(out / "rescored"))
+        results, rescored = merge_parts(out, storage.read_table(out / "results"), storage.read_table(out / "rescored"),
+                                        save_policies)
         total_steps = len(runs) * spec.total_timesteps
         bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
         try:
+            states = [_batch_state(out, batch, results, rescored, save_policies) for batch in batches]
+            for batch, state in zip(batches, states, strict=True):
+                if state == COMMIT:  # killed between its re-scoring and its commit
+                    _commit_trained(out, batch, results, rescored, save_policies)
+            todo = [batch for batch, state in zip(batches, states, strict=True) if state == TRAIN]
+            bar.update(sum(len(b.runs) * b.runs[0].config.num_evals * b.runs[0].config.eval_every
+                           for b in batches if b not in todo))
             if target is None:
-                finished = [_batch_finished(out, batch, rescored) for batch in batches]
-                todo = [batch for batch, done in zip(batches, finished, strict=True) if not done]
-                bar.update(sum(len(b.runs) * b.runs[0].config.num_evals * b.runs[0].config.eval_every
-                               for b, done in zip(batches, finished, strict=True) if done))
                 # Every batch's programs compile in turn on a background thread while batches train (a compile
                 # keeps about one core busy); the training thread compiles nothing meanwhile.
                 compiler = compile_queue or CompileQueue()
@@ -478,7 +548,7 @@ def run_sweep(
 
                 options = {"target_chunks": target_chunks, "checkpoint_every_s": checkpoint_every_s,
                            "save_policies": save_policies}
-                results, rescored = drive(spec, out, batches, results, rescored, target, max_batch, len(devices),
+                results, rescored = drive(spec, out, todo, results, rescored, target, max_batch, len(devices),
                                           options, bar, parameters=cluster_parameters, on_rows=on_rows,
                                           record=functools.partial(_record_batch, out))
         finally:

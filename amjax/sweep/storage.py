@@ -4,8 +4,14 @@ Layout of an output folder:
   metadata.json        the sweep spec, package versions, git revision (written once; identifies the sweep)
   results.parquet/.csv one row per configuration x evaluation point
   summary.parquet/.csv one row per configuration: best costed reward, final values, measurement reduction
+  rescored.parquet/.csv one row per finished configuration: its best policy on fresh test episodes
   checkpoints/*.msgpack  train states of each compiled batch (for resuming), no pickle
   policies/<config_id>.msgpack  the best policy of each configuration (`amjax.load_policy`)
+  finished/<batch>.json  a batch's commit marker: written last, once everything above is on disk for it
+
+Crash consistency: every file appears through one durable rename (`amjax.files.commit`), and a batch counts as
+finished only when its marker is there *and* the files it vouches for are (`batch_complete`); a rerun redoes
+whatever is missing.
 """
 
 from __future__ import annotations
@@ -107,6 +113,72 @@ def all_rescored(rescored: pd.DataFrame | None, config_ids: Iterable[str]) -> bo
     return rescored is not None and set(config_ids) <= set(rescored.config_id)
 
 
+def evals_with_rows(results: pd.DataFrame | None, config_ids: Iterable[str], eval_every: int) -> int:
+    """How many leading evaluation periods every configuration in `config_ids` has its rows for."""
+    config_ids = list(config_ids)
+    if results is None or not config_ids:
+        return 0
+    mine = results[results.config_id.isin(config_ids)]
+    done = 0
+    steps = {c: set(s) for c, s in mine.groupby("config_id").env_steps}
+    while all((done + 1) * eval_every in steps.get(c, ()) for c in config_ids):
+        done += 1
+    return done
+
+
+def marker_path(folder: Path, batch_name: str) -> Path:
+    """Where a sweep folder (or a cluster part) keeps the commit marker of batch `batch_name`."""
+    return Path(folder) / "finished" / f"{batch_name}.json"
+
+
+def batch_marker(batch_name: str, config_ids: Iterable[str], evals: int, eval_every: int,
+                 policies: bool) -> dict[str, Any]:
+    """What a batch's commit marker records: the batch, its configurations and evaluations, whether its policies
+    were saved."""
+    return {"batch": batch_name, "config_ids": sorted(config_ids), "evals": int(evals), "eval_every": int(eval_every),
+            "policies": bool(policies)}
+
+
+def write_marker(folder: Path, marker: dict[str, Any]) -> None:
+    """Commit a batch as finished in `folder` (`batch_marker`): call only once its rows, re-scores, final
+    checkpoint (and policies, if it says so) are on disk there."""
+    write_json(marker_path(folder, marker["batch"]), marker)
+
+
+def read_marker(folder: Path, batch_name: str) -> dict[str, Any] | None:
+    """The commit marker of `batch_name` in `folder`, or None if there is none (or it is unreadable)."""
+    try:
+        return json.loads(marker_path(folder, batch_name).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def batch_complete(folder: Path, batch_name: str, results: pd.DataFrame | None, rescored: pd.DataFrame | None,
+                   policies: bool) -> bool:
+    """Whether `folder` holds batch `batch_name` finished: its marker, and every file the marker vouches for
+    (`marker_files_present`)."""
+    marker = read_marker(folder, batch_name)
+    return marker is not None and marker_files_present(folder, marker, results, rescored, policies)
+
+
+def marker_files_present(folder: Path, marker: dict[str, Any], results: pd.DataFrame | None,
+                         rescored: pd.DataFrame | None, policies: bool) -> bool:
+    """Whether `folder` has everything a batch's marker vouches for: the rows of every evaluation, the re-scores,
+    the final checkpoint and (with `policies`, which the marker must also say were saved) each configuration's
+    policy."""
+    config_ids = marker["config_ids"]
+    return ((marker["policies"] or not policies)
+            and evals_with_rows(results, config_ids, marker["eval_every"]) >= marker["evals"]
+            and all_rescored(rescored, config_ids)
+            and checkpoint_evals(checkpoint_path(folder, marker["batch"])) == marker["evals"]
+            and (not policies or all(policy_path(folder, c).exists() for c in config_ids)))
+
+
+def policy_path(folder: str | Path, config_id: str) -> Path:
+    """Where a sweep keeps the best policy of configuration `config_id`."""
+    return Path(folder) / "policies" / f"{config_id}.msgpack"
+
+
 def checkpoint_path(folder: Path, batch_name: str) -> Path:
     """Where a sweep folder (or a cluster part) keeps the checkpoint of batch `batch_name`."""
     return Path(folder) / "checkpoints" / f"{batch_name}.msgpack"
@@ -146,9 +218,10 @@ def load_checkpoint(path: Path, like: Any) -> tuple[Any, int]:
     except Exception as error:  # corrupt or truncated file
         raise UnreadableFileError(
             f"checkpoint {path} is unreadable ({error}); delete it to restart that batch") from None
-    leaves, treedef = jax.tree.flatten(like)
+    leaves, treedef = jax.tree.flatten(like)  # arrays, or their shapes (`jax.eval_shape`)
     if len(stored) != len(leaves) or any(
-        s.shape != np.shape(x) or s.dtype != np.asarray(x).dtype for s, x in zip(stored, leaves, strict=True)
+        s.shape != np.shape(x) or s.dtype != (x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype)
+        for s, x in zip(stored, leaves, strict=True)
     ):
         raise UnreadableFileError(f"checkpoint {path} does not match this sweep's train state; delete it to restart")
     return jax.tree.unflatten(treedef, stored), evals_done
