@@ -8,12 +8,12 @@ import jax.numpy as jnp
 from gymnax.environments.environment import Environment
 
 from amjax.envs.registry import make_env
-from amjax.validation import check_bool, check_choice, check_real
+from amjax.validation import check_bool, check_real, check_whole_number
 from amjax.wrappers.active_measure import (
-    MODES,
     ActiveMeasure,
     AlwaysMeasured,
     MeasureParams,
+    check_measure_setup,
 )
 from amjax.wrappers.instruments import check_instrument_values, resolve_instruments
 
@@ -43,11 +43,14 @@ def make(
       mode: what the agent sees without measuring: "last" (the last measured observation), "random"
         (a sample of the observation space) or "noisy" (true observation + N(0, noise_std^2)).
       flag: append 1 (fresh) / 0 (stale) to the observation.
-      noise_std: standard deviation for mode "noisy" (required there, refused elsewhere).
-      vanilla: return the plain environment instead (always measured, cost 0, same info keys).
+      noise_std: standard deviation for mode "noisy" (required there, > 0; elsewhere None or 0). These three are
+        checked by `check_measure_setup`, the agent configs' check too.
+      vanilla: return the plain environment instead (always measured, cost 0, same info keys); it takes mode
+        "last" and none of the other measurement arguments.
       extra_obs: features appended to the observation after the flag: "since_measured" (steps since the shown
         observation was measured, log-scaled to [0, 1]) and/or "last_action" (the last control action).
-      budget: at most this many paid measurements per episode (>= 0; a number or an array, traced like the cost);
+      budget: at most this many paid measurements per episode (a whole number >= 0, e.g. 3 or 3.0; a number or an
+        array, traced like the cost);
         requests beyond it are not carried out, and the remaining fraction is appended to the observation. None:
         no budget.
       reward_timing: "immediate" (the paper's) or "on_measure": the raw reward of unmeasured steps is withheld and
@@ -65,27 +68,18 @@ def make(
         observation, for one agent conditioned on every cost of the range. To score such an agent at cost c, keep
         the scaling range and draw c: `params.replace(cost_low=c, cost_high=c)`. None: the fixed `cost`.
     """
-    check_bool("vanilla", vanilla)
     check_bool("flag", flag)
-    if vanilla:
-        if (noise_std is not None or mode != "last" or check_real("cost", cost).any() or extra_obs
-                or budget is not None or reward_timing != "immediate" or instruments != ()
-                or instrument_costs is not None or instrument_noise is not None or cost_range is not None):
-            raise ValueError("vanilla=True takes no cost, mode, noise_std, extra_obs, budget, reward_timing or "
-                             "instruments: it never hides a state")
-        return wrap(env_id, vanilla=True)
-    check_choice("mode", mode, MODES)  # extra_obs and reward_timing: the wrapper checks them
-    if budget is not None:
-        budget = check_real("budget", budget, low=0.0)
     cost = check_real("cost", cost, low=0.0)
-    if mode == "noisy":
-        if noise_std is None:
-            raise ValueError("noise_std: mode='noisy' needs noise_std, a finite number >= 0")
-        noise_std = check_real("noise_std", noise_std, low=0.0)
-    elif noise_std is not None:
-        raise ValueError(f"noise_std is only used with mode='noisy' (mode is {mode!r})")
-    else:
-        noise_std = 0.0
+    options = {"cost": bool(cost.any()), "extra_obs": bool(extra_obs), "budget": budget is not None,
+               "reward_timing": reward_timing != "immediate", "instruments": instruments != (),
+               "instrument_costs": instrument_costs is not None, "instrument_noise": instrument_noise is not None,
+               "cost_range": cost_range is not None}
+    check_measure_setup(vanilla, mode, noise_std, options)  # the agent configs' check too
+    if vanilla:
+        return wrap(env_id, vanilla=True)
+    if budget is not None:  # extra_obs and reward_timing: the wrapper checks them
+        budget = check_whole_number("budget", budget)
+    noise_std = 0.0 if noise_std is None else check_real("noise_std", noise_std, low=0.0)
     if cost_range is not None:
         cost_range = check_cost_range(cost_range, cost)
     wrapped, env_params = wrap(env_id, mode, flag, extra_obs=extra_obs, budgeted=budget is not None,

@@ -56,3 +56,12 @@ def check_positive_int(name: str, value: Any, minimum: int = 1, maximum: int | N
         allowed = f"integers >= {minimum}" if maximum is None else f"integers in [{minimum}, {maximum:,}]"
         raise ValueError(f"{name}: got {value!r}; allowed values: {allowed}")
     return int(value)
+
+
+def check_whole_number(name: str, value: Any, *, low: float = 0.0) -> np.ndarray:
+    """Check that `value` (a number or array of numbers, for vmap) holds finite whole numbers >= `low`, as ints or
+    floats (a count that a traced float field carries, e.g. 3.0). Returns it as a float64 NumPy array."""
+    array = check_real(name, value, low=low)
+    if np.any(array != np.floor(array)):
+        raise ValueError(f"{name}: got {value!r}; allowed values: whole numbers >= {low:g} (a count)")
+    return array

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 import submitit  # noqa: F401 (imported here, its log handlers bind the real stderr rather than a test's capture)
 
-from amjax.agents import DQNConfig, PolicyFileError, PPOConfig, load_policy
+import amjax
+from amjax.agents import DQNConfig, DRQNConfig, PolicyFileError, PPOConfig, PPORNNConfig, load_policy
 from amjax.analysis import NotASweepError, load_results
 from amjax.sweep import SweepMismatchError, SweepSpec, SweepTooLargeError, expand, run_sweep
 from amjax.sweep.storage import UnreadableFileError
@@ -75,6 +76,9 @@ SWEEP_CASES = [
     (["--set", "budget=5"], "budget: set budgeted=True"),
     (["--set", "budgeted=True", "--set", "budget=-1"], "budget: got -1"),
     (["--set", "budgeted=1"], "budgeted: got 1"),
+    (["--set", "budgeted=True", "--set", "budget=2.5"], "budget: got 2.5; allowed values: whole numbers"),
+    (["--mode", "noisy"], "noise_std: mode 'noisy' needs noise_std"),
+    (["--mode", "random", "--set", "noise_std=0.1"], "noise_std: only used with mode 'noisy'"),
     (["--set", "instruments=((0,1),(2,))"], "instruments: ((0, 1), (2,)) must hold each observation index"),
     (["--set", "instruments=cart"], "instruments: got 'cart'"),
     (["--set", "instruments=default", "--set", "instrument_costs=(0.1,)"], "instrument_costs: got 1 values"),
@@ -125,6 +129,8 @@ COMMAND_CASES = [
     ("pareto", ["--specialist-costs", "-0.1"], "--specialist-costs: got -0.1"),
     ("pareto", ["--steps", "0"], "--steps: got 0"),
     ("pareto", ["--agent", "sarsa"], "sarsa"),
+    ("pareto", ["--cost-high", "0.2", "--specialist-costs", "0.1", "0.3"],
+     "--specialist-costs: got 0.3, above --cost-high 0.2"),
 ]
 
 
@@ -211,3 +217,47 @@ def test_a_batch_too_large_for_memory_is_refused_before_writing(tmp_path):
         (tmp_path / "f").write_text("x")
         run_sweep(SweepSpec(agents=("ppo",), seeds=(0,)), tmp_path / "f", progress=False)
     assert issubclass(UnreadableFileError, ValueError)
+
+
+SCHEDULE = {"total_timesteps": 8192, "eval_every": 8192}  # valid for every agent's defaults
+# (amjax.make's arguments, an agent config's fields, the message's start): one shared check refuses both the same way.
+MEASURE_SETUP_CASES = [
+    ({"mode": "last", "noise_std": 0.1}, {"mode": "last", "noise_std": 0.1}, "noise_std: only used with mode 'noisy'"),
+    ({"mode": "random", "noise_std": 0.1}, {"mode": "random", "noise_std": 0.1}, "noise_std: only used"),
+    ({"mode": "noisy", "noise_std": 0.0}, {"mode": "noisy"}, "noise_std: mode 'noisy' needs noise_std"),
+    ({"mode": "noisy"}, {"mode": "noisy", "noise_std": 0.0}, "noise_std: mode 'noisy' needs noise_std"),
+    ({"vanilla": True, "mode": "noisy", "noise_std": 0.1}, {"vanilla": True, "mode": "noisy", "noise_std": 0.1},
+     "vanilla: a vanilla run"),
+    ({"vanilla": True, "mode": "random"}, {"vanilla": True, "mode": "random"}, "vanilla: a vanilla run"),
+    ({"vanilla": True, "reward_timing": "on_measure"}, {"vanilla": True, "reward_timing": "on_measure"},
+     "vanilla: a vanilla run"),
+    ({"budget": 2.5}, {"budgeted": True, "budget": 2.5}, "budget: got 2.5; allowed values: whole numbers"),
+    ({"budget": [1.0, 0.5]}, {"budgeted": True, "budget": 0.5}, "budget: got"),
+]
+
+
+@pytest.mark.parametrize(("make_kwargs", "fields", "message"), MEASURE_SETUP_CASES,
+                         ids=[str(c[1]) for c in MEASURE_SETUP_CASES])
+def test_make_and_agent_configs_refuse_the_same_measure_setups(make_kwargs, fields, message):
+    """`amjax.make` and every agent config (hence every sweep) refuse the same settings, before compiling."""
+    with pytest.raises(ValueError) as from_make:
+        amjax.make("CartPole-v0", **make_kwargs)
+    assert str(from_make.value).startswith(message), from_make.value
+    for config_type in (PPOConfig, DQNConfig, DRQNConfig, PPORNNConfig):
+        with pytest.raises(ValueError) as from_config:
+            config_type(**SCHEDULE, **fields).validate()
+        assert str(from_config.value).startswith(message), from_config.value
+        if make_kwargs == fields:  # the same settings: the same words
+            assert str(from_config.value) == str(from_make.value)
+
+
+def test_the_measure_setups_both_entry_points_accept():
+    """What the shared check lets through: a config's noise_std 0 is "unset" (make's None), integral budgets."""
+    for make_kwargs, fields in (({"mode": "noisy", "noise_std": 0.1}, {"mode": "noisy", "noise_std": 0.1}),
+                                ({"mode": "last"}, {"mode": "last", "noise_std": 0.0}),
+                                ({"mode": "random"}, {"mode": "random"}),
+                                ({"budget": 3.0}, {"budgeted": True, "budget": 3.0}),
+                                ({"vanilla": True}, {"vanilla": True})):
+        amjax.make("CartPole-v0", **make_kwargs)
+        for config_type in (PPOConfig, DQNConfig, DRQNConfig, PPORNNConfig):
+            config_type(**SCHEDULE, **fields).validate()

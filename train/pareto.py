@@ -3,9 +3,10 @@ specialists beside it.
 
 Two resumable sweeps in OUT: `conditioned/` (each episode's cost drawn from [0, --cost-high] and observed; 1.5x one
 specialist's env steps, rounded down to whole evaluation periods) and `specialists/` (an ordinary sweep at
---specialist-costs, the env's replication budget). Then every conditioned policy is scored at the cost grid on 100
-fresh episodes: OUT/front.csv (every point), OUT/table.md (conditioned vs specialists at their costs, medians over
-seeds) and OUT/front.png. Rerunning the command resumes the sweeps.
+--specialist-costs, the env's replication budget; the costs must lie in [0, --cost-high], where the conditioned
+agent trained). Then every conditioned policy is scored at the cost grid on 100 fresh episodes: OUT/front.csv
+(every point), OUT/table.md (conditioned vs specialists at their costs, medians over seeds) and OUT/front.png.
+Rerunning the command resumes the sweeps.
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser.add_argument("--grid-step", type=float, default=0.05,
                         help="the front's cost grid: 0, STEP, ..., COST_HIGH (default: 0.05)")
     parser.add_argument("--specialist-costs", nargs="*", type=float, default=[0.1, 0.2, 0.3], metavar="C",
-                        help="costs of the per-cost specialists; none: skip them (default: 0.1 0.2 0.3)")
+                        help="costs of the per-cost specialists, in [0, COST_HIGH]; none: skip them (default: 0.1 "
+                             "0.2 0.3)")
     parser.add_argument("--steps", type=int, help="a specialist's env steps (default: the env's replication budget)")
     parser.add_argument("--eval-every", type=int, help="env steps between evaluations (default: the env's)")
     parser.add_argument("--out", required=True, help="output folder (rerun to resume)")
@@ -49,6 +51,10 @@ def _specs(args: argparse.Namespace) -> tuple[Any, Any, list[float]]:
     step = float(check_real("--grid-step", args.grid_step, low=0.0, high=high, low_inclusive=False))
     for cost in args.specialist_costs:
         check_real("--specialist-costs", cost, low=0.0)
+        if cost > high:  # the conditioned agent would be scored at a cost it never trained on
+            raise ValueError(f"--specialist-costs: got {cost:g}, above --cost-high {high:g}; the conditioned agent "
+                             f"trains on costs in [0, {high:g}] and is compared with each specialist at its cost; "
+                             f"allowed values: costs in [0, {high:g}] (or raise --cost-high)")
     steps, every = REPLICATE_BUDGETS.get(args.env, QUICK_BUDGETS.get(args.env, (153_600, 10_240)))
     steps = steps if args.steps is None else check_positive_int("--steps", args.steps)
     every = every if args.eval_every is None else check_positive_int("--eval-every", args.eval_every)

@@ -16,8 +16,8 @@ import numpy as np
 from flax import struct
 
 from amjax.envs.registry import make_env
-from amjax.validation import check_bool, check_choice, check_positive_int, check_real
-from amjax.wrappers.active_measure import MODES, REWARD_TIMINGS, check_extra_obs
+from amjax.validation import check_bool, check_choice, check_positive_int, check_real, check_whole_number
+from amjax.wrappers.active_measure import REWARD_TIMINGS, check_extra_obs, check_measure_setup
 from amjax.wrappers.instruments import check_instruments, resolve_instruments
 
 MEASURE_HEADS = ("joint", "factored")
@@ -26,6 +26,7 @@ _BOUNDS = {
     "nonnegative": {"low": 0.0},
     "unit": {"low": 0.0, "high": 1.0},
     "probability": {"low": 0.0, "high": 1.0, "low_inclusive": False, "high_inclusive": False},
+    "count": {"low": 0.0},  # whole numbers (check_whole_number)
 }
 
 
@@ -73,15 +74,15 @@ class AgentConfig:
     # one agent for a range of costs: each episode's cost drawn from [cost_low, cost_high] and observed
     cost_conditioned: bool = static(False)
     cost: float = 0.0  # traced: charged per measurement (with instruments: per step with any reading)
-    noise_std: float = 0.0  # traced: std of the observation noise in mode "noisy"
-    budget: float = 0.0  # traced: paid measurements allowed per episode (with budgeted=True)
+    noise_std: float = 0.0  # traced: std of the observation noise in mode "noisy" (> 0 there; 0 elsewhere)
+    budget: float = 0.0  # traced: paid measurements allowed per episode (with budgeted=True; a whole number)
     instrument_costs: tuple[float, ...] = ()  # traced: the price of each instrument (() = zeros)
     instrument_noise: tuple[float, ...] = ()  # traced: the std of each instrument's reading noise (() = zeros)
     cost_low: float = 0.0  # traced: with cost_conditioned, the range episodes draw their cost from
     cost_high: float = 0.0
 
     # The allowed range of each traced field of a subclass: "positive" (> 0), "nonnegative" (>= 0), "unit"
-    # ([0, 1]) or "probability" ((0, 1)); every value must be finite.
+    # ([0, 1]), "probability" ((0, 1)) or "count" (whole numbers >= 0); every value must be finite.
     # Static fields that hold network widths (a tuple of layer sizes), declared by the agents' configs.
     WIDTH_FIELDS: ClassVar[tuple[str, ...]] = ()
     TRACED_BOUNDS: ClassVar[dict[str, str]] = {}
@@ -139,27 +140,20 @@ class AgentConfig:
                 f"env_id: {self.env_id} has a {space} action space; {type(self).__name__} handles "
                 f"{' and '.join(self.ACTION_SPACES)} (for Box control use PPO: agent ppo or ppo-rnn)"
             )
-        check_choice("mode", self.mode, MODES)
         check_bool("flag", self.flag)
         check_bool("vanilla", self.vanilla)
         check_extra_obs(self.extra_obs)
         check_bool("budgeted", self.budgeted)
         check_choice("reward_timing", self.reward_timing, REWARD_TIMINGS)
-        if self.vanilla and (self.extra_obs or self.budgeted or self.reward_timing != "immediate"
-                             or self.instruments != ()):
-            raise ValueError("vanilla: a vanilla run never hides a state; it takes no extra_obs, budgeted, "
-                             "reward_timing or instruments")
         num_instruments = self.check_instruments(env, env_params)
         check_choice("measure_head", self.measure_head, MEASURE_HEADS)
         check_bool("cost_conditioned", self.cost_conditioned)
-        if self.cost_conditioned and self.vanilla:
-            raise ValueError("cost_conditioned: a vanilla run has no measurement cost; allowed there: False")
         if self.measure_head == "factored" and (self.vanilla or space != "Discrete"):
             raise ValueError("measure_head: 'factored' splits a Discrete control's (control, measure) pairs; "
                              + ("a vanilla run has no measure choice" if self.vanilla else
                                 f"{self.env_id}'s {space} control already has a measure entry of its own")
                              + "; allowed there: 'joint'")
-        bounds = {"cost": "nonnegative", "noise_std": "nonnegative", "budget": "nonnegative",
+        bounds = {"cost": "nonnegative", "noise_std": "nonnegative", "budget": "count",
                   "cost_low": "nonnegative", "cost_high": "nonnegative", **self.TRACED_BOUNDS}
         if num_instruments:
             bounds.update(instrument_costs="nonnegative", instrument_noise="nonnegative")
@@ -169,9 +163,11 @@ class AgentConfig:
                 continue  # under vmap/jit: the caller checked the concrete values
             if isinstance(value, tuple) and not value:
                 continue  # instrument prices and noise left at zero
-            check_real(name, value, **_BOUNDS[kind])
-        if self.vanilla and not isinstance(self.cost, jax.core.Tracer) and np.any(np.asarray(self.cost)):
-            raise ValueError("cost: a vanilla run has no measurement cost; allowed values: 0")
+            if kind == "count":
+                check_whole_number(name, value)
+            else:
+                check_real(name, value, **_BOUNDS[kind])
+        self.check_measure_setup()
         self.check_cost_range()
         if not self.budgeted and not isinstance(self.budget, jax.core.Tracer) and np.any(np.asarray(self.budget)):
             raise ValueError("budget: set budgeted=True to enforce a measurement budget (budget is ignored without)")
@@ -196,6 +192,16 @@ class AgentConfig:
                 f"total_timesteps={total} (the command line rounds them for you)"
             )
         return self
+
+    def check_measure_setup(self) -> None:
+        """mode, noise_std and vanilla as `amjax.make` checks them (`check_measure_setup`, one check for both; a
+        noise_std of 0, the default, is unset); a vanilla run takes none of the measurement options."""
+        cost_set = not isinstance(self.cost, jax.core.Tracer) and bool(np.any(np.asarray(self.cost)))
+        options = {"cost": cost_set, "extra_obs": bool(self.extra_obs), "budgeted": self.budgeted,
+                   "reward_timing": self.reward_timing != "immediate", "instruments": self.instruments != (),
+                   "instrument_costs": bool(self.instrument_costs), "instrument_noise": bool(self.instrument_noise),
+                   "cost_conditioned": self.cost_conditioned}
+        check_measure_setup(self.vanilla, self.mode, self.noise_std, options)
 
     def check_cost_range(self) -> None:
         """With cost_conditioned: cost_low <= cost_high and no fixed cost; without: the range left at zero."""

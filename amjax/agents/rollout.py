@@ -44,7 +44,10 @@ class EnvBatch:
 @struct.dataclass
 class Transition:
     """One step of every parallel env. `next_obs` is the observation before any auto-reset, so value targets
-    bootstrap correctly on truncation; `done` = terminated or truncated cuts multi-step returns."""
+    bootstrap correctly on truncation; `done` = terminated or truncated cuts multi-step returns. `reward` is what
+    the targets use: the env's reward less `info["paid_at_truncation"]` where the env reports it (reward_timing
+    "on_measure": owed rewards paid only because a time limit cut the episode, which the bootstrap from `next_obs`
+    already counts); the episode's scores (`episode`) keep every payment."""
 
     obs: jax.Array
     action: jax.Array
@@ -69,6 +72,8 @@ def step_envs(
     obs, state, reward, terminated, truncated, info = jax.vmap(
         env.step, in_axes=(0, 0, 0, None)
     )(keys, batch.state, action, env_params)
+    if "paid_at_truncation" in info:  # counted once, by the bootstrap value (see `Transition`)
+        reward = reward - info["paid_at_truncation"]
     transition = Transition(
         obs=batch.obs,
         action=action,

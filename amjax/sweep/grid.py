@@ -269,7 +269,7 @@ def _setting_runs(
         hp = dict(zip(own, values, strict=True))
         config = config_type(
             env_id=env,
-            mode=spec.mode,
+            mode="last" if vanilla else spec.mode,  # the plain env shows every observation: no mode
             vanilla=vanilla,
             cost=cost,
             total_timesteps=spec.total_timesteps,

@@ -14,12 +14,16 @@ Options beyond the paper (each off by default; off, the state, observation and r
 - `extra_obs`: features appended after the flag, giving a memoryless agent what it cannot remember.
   "since_measured": steps since the shown observation was measured, as log(1 + k) / log(1 + max_steps) in [0, 1];
   "last_action": the last control action (one-hot for Discrete, the action itself for Box; zeros after a reset).
-- `budgeted`: at most `MeasureParams.budget` paid measurements per episode (traced, like the cost). A request
-  beyond it is not carried out (no cost, the stale view, `info["refused"]`), and the remaining fraction of the
-  budget is appended to the observation (after the extra features).
+- `budgeted`: at most `MeasureParams.budget` paid measurements per episode (traced, like the cost; a whole number:
+  `amjax.make` and the configs refuse fractions, and one set by hand counts as its floor). A request beyond it is
+  not carried out (no cost, the stale view, `info["refused"]`), and the remaining fraction of the budget is appended
+  to the observation (after the extra features).
 - `reward_timing="on_measure"`: the raw reward of an unmeasured step is withheld and paid, summed, at the next
   measurement or at the episode's end (for outcomes known only when looked at). `info["raw_reward"]` is what was
-  paid, so episode totals are unchanged; `info["withheld"]` is what is still owed.
+  paid, so episode totals are unchanged; `info["withheld"]` is what is still owed. `info["paid_at_truncation"]` is
+  the part of the reward paid only because a time limit cut the episode on an unmeasured step (0 otherwise): a
+  learner that bootstraps there from the value of the pre-reset view, which already counts what is owed (the next
+  measurement would pay it), leaves it out of its target (`amjax.agents.rollout.step_envs` does), or counts it twice.
 - `instruments`: the observation split into k instruments read separately (`amjax/wrappers/instruments.py`: the
   action encoding, defaults per env). Each has a flag (k flags replace the one), a price
   (`MeasureParams.instrument_costs`) and a reading noise std (`MeasureParams.instrument_noise`, Gaussian, clipped
@@ -32,10 +36,17 @@ Options beyond the paper (each off by default; off, the state, observation and r
   cost), so one agent can learn every cost of the range at once. To score it at cost c, set the draw range to
   (c, c) and keep the scaling range.
 Keys: in mode "last" `step` hands its key to the inner environment unchanged (always measuring is then exactly
-the plain environment under the same keys); the other modes split it into the inner env's key and the view's.
+the plain environment under the same keys); the other modes split it into the inner env's key and the view's. The
+wrapper's other draws (instrument reading noise, an episode's cost) come from its own stream,
+`fold_in(key, WRAPPER_STREAM)` of the `reset` or `step` key, which no environment reaches: an environment derives
+its keys with small splits and folds (`split(key, n)[i]`, which in this jax equals `fold_in(key, i)`: gymnax's
+auto-reset key is `fold_in(key, 1)`, LunarLander's wind key at reset `fold_in(key, 2)`), so a reading's noise tells
+nothing about the next episode's start, nor an episode's cost about its wind.
 
 `cost` and `noise_std` are leaves of `MeasureParams` (traced, vmappable); `mode`, `flag` and the inner environment
 are static (attributes of the wrapper object, which is a static argument of the jitted `reset`/`step`).
+`check_measure_setup` is the one check of mode, noise_std and vanilla that `amjax.make`, the agent configs and the
+NumPy wrapper share.
 """
 
 from __future__ import annotations
@@ -50,7 +61,7 @@ from gymnax.environments import spaces
 from gymnax.environments.environment import Environment
 from gymnax.wrappers.purerl import GymnaxWrapper
 
-from amjax.validation import check_bool, check_choice
+from amjax.validation import check_bool, check_choice, check_real
 from amjax.wrappers.instruments import (
     check_instruments,
     decode_mask,
@@ -63,6 +74,16 @@ EXTRA_OBS = ("since_measured", "last_action")
 REWARD_TIMINGS = ("immediate", "on_measure")
 # gymnax writes "unbounded" as +-finfo(float32).max (e.g. CartPole's velocities); treat such bounds as infinite.
 UNBOUNDED = 1e30
+# `fold_in` data of the wrapper's own stream of draws, far beyond any split an environment makes of its key; within
+# it, `fold_in(own, READING_DRAW)` draws the reading noise and `fold_in(own, COST_DRAW)` an episode's cost.
+WRAPPER_STREAM = 0x616D6561  # "amea"
+READING_DRAW, COST_DRAW = 0, 1
+
+
+def wrapper_key(key: jax.Array, draw: int) -> jax.Array:
+    """The key of one of the wrapper's own draws (`READING_DRAW`, `COST_DRAW`) at the `reset` / `step` key `key`: a
+    stream apart from every key the inner environment derives from `key` (see the module docstring)."""
+    return jax.random.fold_in(jax.random.fold_in(key, WRAPPER_STREAM), draw)
 
 
 @struct.dataclass
@@ -340,10 +361,11 @@ class ActiveMeasure(GymnaxWrapper):
 
     @staticmethod
     def _draw_cost(key: Any, params: MeasureParams | None) -> jax.Array:
-        """An episode's cost, uniform in [cost_low, cost_high], from a stream apart from the inner env's."""
+        """An episode's cost, uniform in [cost_low, cost_high], from the wrapper's own stream of `key` (the reset or
+        step key)."""
         if key is None:
             return jnp.float32(0.0)
-        u = jax.random.uniform(jax.random.fold_in(key, 2), (), jnp.float32)
+        u = jax.random.uniform(wrapper_key(key, COST_DRAW), (), jnp.float32)
         return params.cost_low + u * (params.cost_high - params.cost_low)
 
     def _observe(self, obs: jax.Array, fresh: jax.Array, counters: dict[str, Any], params: MeasureParams) -> jax.Array:
@@ -362,6 +384,7 @@ class ActiveMeasure(GymnaxWrapper):
         if self.budgeted:
             used = counters["measurements"].astype(jnp.float32)
             left = jnp.where(params.budget > 0, 1.0 - used / params.budget, 0.0)
+            left = jnp.where(used < jnp.floor(params.budget), left, 0.0)  # a hand-set fraction: spent at its floor
             features.append(jnp.clip(left, 0.0, 1.0)[None])
         if self.cost_conditioned:
             seen = scaled_cost(counters["episode_cost"], params.cost_scale_low, params.cost_scale_high)
@@ -397,7 +420,7 @@ class ActiveMeasure(GymnaxWrapper):
             if self.instruments:
                 measured = served_readings(requested, state.measurements, params.budget)
             else:
-                measured = requested & (state.measurements < params.budget)
+                measured = requested & (state.measurements < jnp.floor(params.budget))
         obs, env_state, raw_reward, terminated, truncated, info = self._env.step(
             key_env, state.env_state, control, params.env_params
         )
@@ -408,8 +431,8 @@ class ActiveMeasure(GymnaxWrapper):
             any_read = measured.any()
             fresh = measured[self._owner]
             low, high = self._obs_bounds(params)
-            noise = params.instrument_noise[self._owner] * jax.random.normal(jax.random.fold_in(key, 1),
-                                                                             true_obs.shape)
+            draws = jax.random.normal(wrapper_key(key, READING_DRAW), true_obs.shape)
+            noise = params.instrument_noise[self._owner] * draws
             reading = jnp.clip(true_obs + noise, low, high)
             cost = self._base_cost(state, params) * any_read + (params.instrument_costs * measured).sum()
         else:
@@ -440,6 +463,8 @@ class ActiveMeasure(GymnaxWrapper):
             info["readings"] = measured
         if self.reward_timing == "on_measure":
             info["withheld"] = counters["withheld"]
+            cut_stale = truncated & ~terminated & ~any_read
+            info["paid_at_truncation"] = jnp.where(cut_stale, owed, 0.0)
         if self.budgeted:
             info["refused"] = requested & ~measured
         return next_obs, next_state, paid - cost, terminated, truncated, info
@@ -463,6 +488,36 @@ class ActiveMeasure(GymnaxWrapper):
         if counters["measurements"] is not None:
             counters["measurements"] = state.measurements + measured.astype(jnp.int32).sum()
         return counters
+
+
+def check_measure_setup(vanilla: Any, mode: Any, noise_std: Any, options: dict[str, bool] | None = None) -> None:
+    """The one check of the view settings that `amjax.make`, the agent configs (`AgentConfig.validate`) and the
+    NumPy `ActiveMeasureWrapper` share, on concrete values before anything is compiled.
+
+    `vanilla` and `mode` must be allowed values. A vanilla run (the plain env) hides no state: mode "last", no
+    noise_std and none of `options` (the caller's active-measure arguments, by name, True where set). Mode "noisy"
+    needs noise_std > 0 (0 would show the true state unmeasured: a vanilla run with a useless measure action); the
+    other modes take none. noise_std None or 0 is unset (a config's default is 0.0); an array (for vmap) is checked
+    element-wise; a traced one is skipped (its caller checked the concrete values). ValueError naming the argument
+    otherwise."""
+    check_bool("vanilla", vanilla)
+    check_choice("mode", mode, MODES)
+    traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(noise_std))
+    std = None if noise_std is None or traced else check_real("noise_std", noise_std, low=0.0)
+    std_set = std is not None and bool(std.any())
+    if vanilla:
+        given = [name for name, on in (("mode", mode != "last"), ("noise_std", std_set), *(options or {}).items())
+                 if on]
+        if given:
+            raise ValueError(f"vanilla: a vanilla run is the plain env and never hides a state, so it takes no "
+                             f"{', '.join(given)}; allowed: vanilla=False, or those left at their defaults (mode "
+                             "'last', no noise_std, no measurement options)")
+        return
+    if mode == "noisy" and not traced and (std is None or not bool((std > 0).all())):
+        raise ValueError(f"noise_std: mode 'noisy' needs noise_std, finite numbers > 0 (got {noise_std!r}; 0 shows the "
+                         "true state unmeasured)")
+    if mode != "noisy" and std_set:
+        raise ValueError(f"noise_std: only used with mode 'noisy' (mode is {mode!r}); allowed here: 0 or None")
 
 
 def check_extra_obs(extra_obs: Any) -> tuple[str, ...]:

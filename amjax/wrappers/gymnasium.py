@@ -26,8 +26,8 @@ from gymnasium.envs.registration import EnvSpec
 from gymnax.environments import spaces as gymnax_spaces
 
 from amjax.cores import TreeLayout, jit_one_kernel
-from amjax.validation import check_bool, check_choice, check_positive_int, check_real
-from amjax.wrappers.active_measure import MODES, REWARD_TIMINGS, UNBOUNDED, check_extra_obs
+from amjax.validation import check_bool, check_choice, check_positive_int, check_real, check_whole_number
+from amjax.wrappers.active_measure import REWARD_TIMINGS, UNBOUNDED, check_extra_obs, check_measure_setup
 from amjax.wrappers.instruments import check_instrument_values, check_instruments, feature_owner
 
 __all__ = ["ActiveMeasureWrapper", "GymnasiumEnv", "gymnasium_space", "to_gymnasium"]
@@ -40,17 +40,12 @@ _VIEW_STREAM = 0x616D
 
 
 def check_measure_args(cost: Any, mode: str, flag: bool, noise_std: Any) -> tuple[float, float]:
-    """Validate the active-measure arguments as `amjax.make` does; returns (cost, noise_std)."""
-    check_choice("mode", mode, MODES)
+    """Validate the active-measure arguments as `amjax.make` does (`check_measure_setup`, the same check);
+    returns (cost, noise_std)."""
     check_bool("flag", flag)
     cost = _one_number("cost", cost)
-    if mode == "noisy":
-        if noise_std is None:
-            raise ValueError("noise_std: mode='noisy' needs noise_std, a finite number >= 0")
-        return cost, _one_number("noise_std", noise_std)
-    if noise_std is not None:
-        raise ValueError(f"noise_std is only used with mode='noisy' (mode is {mode!r})")
-    return cost, 0.0
+    check_measure_setup(False, mode, noise_std)
+    return cost, 0.0 if noise_std is None else _one_number("noise_std", noise_std)
 
 
 def _one_number(name: str, value: Any) -> float:
@@ -134,9 +129,12 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
       cost: charged per measurement (one finite number >= 0).
       mode: "last", "random" or "noisy".
       flag: append the measured flag to the observation.
-      noise_std: standard deviation for mode "noisy" (required there, refused elsewhere).
+      noise_std: standard deviation for mode "noisy" (required there, > 0; elsewhere None or 0), checked with
+        `amjax.make`'s check.
       extra_obs, budget, reward_timing: the options of `amjax.make`, with the same meaning and observation layout
-        ("since_measured" scales by the env's time limit, `env.spec.max_episode_steps`, which it then needs).
+        ("since_measured" scales by the env's time limit, `env.spec.max_episode_steps`, which it then needs) and
+        info keys (with "on_measure", `info["paid_at_truncation"]`: leave it out of a target that bootstraps at a
+        truncation, as `amjax.wrappers.active_measure` explains).
       instruments, instrument_costs, instrument_noise: `amjax.make`'s instruments (a tuple of observation-index
         tuples; "default" needs the env id, so pass the indices), their prices and reading noise (k numbers each,
         default zeros). The action encoding and layout are the JAX wrapper's; `info["readings"]` holds the k
@@ -165,7 +163,7 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         self.extra_obs = check_extra_obs(extra_obs)
         check_choice("reward_timing", reward_timing, REWARD_TIMINGS)
         self.reward_timing = reward_timing
-        self.budget = None if budget is None else _one_number("budget", budget)
+        self.budget = None if budget is None else _one_number("budget", check_whole_number("budget", budget))
         self._horizon = env.spec.max_episode_steps if env.spec is not None else None
         if "since_measured" in self.extra_obs and not self._horizon:
             raise ValueError("extra_obs: 'since_measured' scales by the episode's time limit, and this env has "
@@ -325,6 +323,7 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         if self.reward_timing == "on_measure":
             self._owed += raw_reward
             raw_reward = self._owed if (measured or terminated or truncated) else 0.0
+            info["paid_at_truncation"] = raw_reward if (truncated and not (terminated or measured)) else 0.0
             self._owed -= raw_reward
             info["withheld"] = self._owed
         if self.budget is not None:

@@ -118,6 +118,7 @@ def encode_mask(readings: jax.Array) -> jax.Array:
 
 def served_readings(requested: jax.Array, used: jax.Array, budget: jax.Array) -> jax.Array:
     """The requested readings a budget allows: instruments are served in their order while the readings made
-    before each (this episode's `used` plus earlier instruments this step) are below `budget`."""
+    before each (this episode's `used` plus earlier instruments this step) are below `budget` (whole readings: a
+    fraction counts as its floor)."""
     before = used + jnp.cumsum(requested.astype(jnp.int32)) - requested.astype(jnp.int32)
-    return requested & (before < budget)
+    return requested & (before < jnp.floor(budget))

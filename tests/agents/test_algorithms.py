@@ -22,12 +22,20 @@ from amjax.agents import (
     init_run,
     run_evals,
     stack_configs,
+    training_env,
     unstack_config,
 )
-from amjax.agents.ppo_core import PPOBaseConfig, gae
-from amjax.agents.q_learning import QLearningConfig, epsilon, n_step_transitions, td_targets
+from amjax.agents.drqn import sequence_targets
+from amjax.agents.ppo_core import PPOBaseConfig, gae, rollout_advantages
+from amjax.agents.q_learning import (
+    QLearningConfig,
+    epsilon,
+    n_step_transitions,
+    td_targets,
+    transition_arrays,
+)
 from amjax.agents.replay import replay_add, replay_init, replay_sample
-from amjax.agents.rollout import EnvBatch
+from amjax.agents.rollout import EnvBatch, reset_envs, rollout
 from amjax.agents.saved import SavedPolicy
 
 TINY = {
@@ -367,3 +375,62 @@ def test_reward_scale_multiplies_the_stored_rewards(name):
         expected = 0.5 * leaf if path in rewards else leaf
         np.testing.assert_array_equal(half[path], expected, err_msg=path)
     assert any(np.any(full[path][:size] != 0) for path in rewards)
+
+
+def _truncated_unmeasured_rollout(config, steps=5):
+    """`steps` unmeasured steps of CartPole-v0 cut by a `steps`-step time limit (no measurement, control 0: the
+    pole does not fall so soon), through the trainers' `rollout`: transitions [steps, 1]."""
+    env, params, _ = training_env(config)
+    params = params.replace(env_params=params.env_params.replace(max_steps_in_episode=steps))
+    batch = reset_envs(env, params, jax.random.key(0), 1)
+
+    def never_measure(batch, carry, key):
+        return jnp.zeros(batch.obs.shape[0], jnp.int32), carry, None
+
+    _, _, transitions, _ = rollout(env, params, batch, None, never_measure, jax.random.key(1), steps)
+    assert not transitions.terminated.any() and transitions.done[:, 0].tolist() == [False] * (steps - 1) + [True]
+    assert float(transitions.episode.raw_return[-1, 0]) == steps  # the score still counts every step's reward
+    return transitions
+
+
+def test_a_truncated_stale_step_counts_the_owed_reward_once():
+    """reward_timing="on_measure": the truncation pays the 5 rewards owed (the episode's score keeps them), but the
+    learner's targets bootstrap there from the value of the pre-reset view, which already counts what is owed (the
+    next measurement would pay it), so the targets leave the payment out. Hand computation with every value 10 and
+    nothing measured (no cost): PPO's target at the truncated step is 0 + gamma 10; DQN's 3-step target two steps
+    before it 0 + 0 + 0 + gamma^3 10 (not gamma^2 5 + gamma^3 10); DRQN's the same."""
+    gamma, v = 0.99, 10.0
+    ppo = PPOConfig(reward_timing="on_measure", gamma=gamma, gae_lambda=0.95)
+    transitions = _truncated_unmeasured_rollout(ppo)
+    values = jnp.full((5, 1), v)
+    _, targets = rollout_advantages(ppo, transitions, values, values)
+    assert float(targets[-1, 0]) == pytest.approx(gamma * v, rel=1e-6)
+
+    dqn = DQNConfig(reward_timing="on_measure", gamma=gamma, n_step=3)
+    window = transition_arrays(dqn, _truncated_unmeasured_rollout(dqn))
+    items = n_step_transitions(window, 3, gamma)
+    q = jnp.full((3, 1, 4), v)
+    dqn_targets = td_targets(q, q, items["reward"], items["discount"])
+    assert float(dqn_targets[2, 0]) == pytest.approx(gamma**3 * v, rel=1e-6)
+
+    drqn = DRQNConfig(reward_timing="on_measure", gamma=gamma, n_step=3, burn_in=0)
+    steps = transition_arrays(drqn, _truncated_unmeasured_rollout(drqn))
+    q = jnp.full((5, 1, 4), v)
+    drqn_targets = sequence_targets(drqn, steps, q, q)
+    assert float(drqn_targets[2, 0]) == pytest.approx(gamma**3 * v, rel=1e-6)
+    assert float(drqn_targets[4, 0]) == pytest.approx(gamma * v, rel=1e-6)
+
+
+def test_a_measured_end_pays_the_learner_as_before():
+    """The owed reward stays in the learner's reward where a truncated episode ends on a measurement (the
+    measurement pays it): only a stale truncation is corrected."""
+    config = PPOConfig(reward_timing="on_measure")
+    env, params, _ = training_env(config)
+    params = params.replace(env_params=params.env_params.replace(max_steps_in_episode=3))
+    batch = reset_envs(env, params, jax.random.key(0), 1)
+
+    def measure_last(batch, carry, key):  # measures on the third step only (flag 0 until then)
+        return jnp.where(carry == 2, 2, 0)[None].astype(jnp.int32), carry + 1, None
+
+    _, _, transitions, _ = rollout(env, params, batch, jnp.int32(0), measure_last, jax.random.key(1), 3)
+    np.testing.assert_allclose(transitions.reward[:, 0], [0.0, 0.0, 3.0])

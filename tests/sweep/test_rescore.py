@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from amjax.agents import ALGORITHMS, init_run, rescore, run_evals, training_env
+from amjax.agents import ALGORITHMS, init_run, rescore, run_evals, training, training_env
 from amjax.agents.rollout import fast_key, reset_envs
 from amjax.agents.training import RESCORE_STREAM
 from amjax.sweep import SweepSpec, expand, load_sweep_policy, run_sweep
@@ -39,6 +39,12 @@ def test_summary_and_policies_carry_the_rescored_figures(sweep):
     # cost 0: costed and raw returns agree; cost 0.3: the costed return is the raw one less 0.3 per measurement
     free = summary[summary.cost == 0]
     np.testing.assert_allclose(free.best_policy_return, free.best_policy_raw_return, rtol=1e-6)
+    # CartPole pays 1 a step, so the raw return is the episode length and the measurements per episode are the
+    # measured fraction times it (means over the same episodes).
+    paid = summary[summary.cost == 0.3]
+    assert len(paid) == 2 and (paid.best_policy_measured_fraction > 0).all()  # the cost was charged
+    measurements = paid.best_policy_measured_fraction * paid.best_policy_raw_return
+    np.testing.assert_allclose(paid.best_policy_return, paid.best_policy_raw_return - 0.3 * measurements, rtol=1e-5)
     stored = pd.read_parquet(sweep.out / "rescored.parquet").set_index("config_id")
     assert sorted(stored.index) == sorted(summary.index)
     for config_id, row in summary.iterrows():
@@ -106,11 +112,25 @@ def test_seeds_beyond_32_bits_are_refused(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("agent", sorted(ALGORITHMS))
-def test_every_agent_rescores_with_more_episodes_than_it_evaluates(agent):
+def test_every_agent_rescores_with_more_episodes_than_it_evaluates(agent, monkeypatch):
     """Recurrent agents size their carry by the episode count: re-scoring (100) must not reuse eval_episodes (2)."""
     spec = SweepSpec(agents=(agent,), costs=(0.2,), seeds=(0,), total_timesteps=8192, eval_every=8192,
                      eval_episodes=2, hyperparams={"rescore_episodes": 5})
     (run,) = expand(spec)
-    state = init_run(ALGORITHMS[agent], run.config, jax.random.PRNGKey(0))
-    scores = jax.jit(lambda c, s: rescore(ALGORITHMS[agent], c, s))(run.config, state)
+    algo = ALGORITHMS[agent]
+    state = init_run(algo, run.config, jax.random.PRNGKey(0))
+    scores = jax.jit(lambda c, s: rescore(algo, c, s))(run.config, state)
     assert np.isfinite(float(scores.costed_return)) and 0.0 <= float(scores.measured_fraction) <= 1.0
+    # The episodes it ran, counted: rescore again outside jit, recording what its `evaluate` was asked for and what
+    # finished (the same means as the compiled run).
+    counted, real_evaluate = [], training.evaluate
+
+    def counting_evaluate(*args):
+        finished = real_evaluate(*args)
+        counted.append((args[-1], float(finished.count)))
+        return finished
+
+    monkeypatch.setattr(training, "evaluate", counting_evaluate)
+    again = rescore(algo, run.config, state)
+    assert counted == [(5, 5.0)]  # 5 re-scoring episodes (not eval_episodes' 2), each run to its end
+    assert float(again.costed_return) == pytest.approx(float(scores.costed_return), rel=1e-5)

@@ -71,6 +71,9 @@ def test_vanilla_runs_take_no_measurement_options():
     assert _planned_configs(spec.to_json()) == len(runs)
     one = SweepSpec(**{**spec.__dict__, "hyperparams": {"instruments": ((0, 1), (2, 3))}})
     assert _planned_configs(one.to_json()) == len(expand(one)) == 4
+    for mode, options in (("random", {}), ("noisy", {"noise_std": 0.1})):  # the plain env takes no mode
+        runs = expand(SweepSpec(**{**spec.__dict__, "mode": mode, "hyperparams": options}))
+        assert {(r.config.mode, r.vanilla) for r in runs} == {(mode, False), ("last", True)}
 
 
 def test_agent_scoped_hyperparameters():

@@ -179,6 +179,7 @@ def test_options_match_the_jax_wrapper(seed: int) -> None:
             info, j_info = gym_out[4], jax_out[5]
             assert info["refused"] == bool(j_info["refused"])
             assert info["withheld"] == pytest.approx(float(j_info["withheld"]), abs=1e-5)
+            assert info["paid_at_truncation"] == pytest.approx(float(j_info["paid_at_truncation"]), abs=1e-5)
             refused, withheld = refused + info["refused"], withheld + (info["withheld"] > 0)
             state = jax_out[1]
             if gym_out[2] or gym_out[3]:
@@ -512,6 +513,8 @@ def test_exported_env_invariants(exported, actions: list[int], cost: float) -> N
         ({"mode": "noisy", "noise_std": float("inf")}, "noise_std"),
         ({"mode": "last", "noise_std": 0.1}, "noise_std"),
         ({"mode": "random", "noise_std": 0.1}, "noise_std"),
+        ({"mode": "noisy", "noise_std": 0.0}, "noise_std"),
+        ({"budget": 2.5}, "budget"),
         ({"flag": "yes"}, "flag"),
     ],
 )

@@ -36,7 +36,7 @@ def expected_options(actions, budget, plain):
     with the actions actually carried out)."""
     horizon = math.log1p(7)
     since, last, used, owed = 0, np.zeros(N), 0, 0.0
-    out = {"since": [], "last": [], "left": [], "refused": [], "paid": [], "withheld": []}
+    out = {"since": [], "last": [], "left": [], "refused": [], "paid": [], "withheld": [], "cut": []}
     for t, action in enumerate(actions):
         control, requested = action % N, action >= N
         measured = requested and used < budget
@@ -48,6 +48,7 @@ def expected_options(actions, budget, plain):
         owed -= paid
         out["refused"].append(requested and not measured)
         out["paid"].append(paid)
+        out["cut"].append(paid if plain.truncated[t] and not (plain.terminated[t] or measured) else 0.0)
         out["withheld"].append(owed)
         if plain.terminated[t] or plain.truncated[t]:
             since, last, used = 0, np.zeros(N), 0
@@ -101,6 +102,7 @@ def test_options_match_a_python_loop(rollout, seed, actions, budget, cost):
     # Rewards: withheld until a measurement or the episode's end, so each episode's total is unchanged.
     np.testing.assert_allclose(run.info["raw_reward"], expected["paid"], atol=1e-5)
     np.testing.assert_allclose(run.info["withheld"], expected["withheld"], atol=1e-5)
+    np.testing.assert_allclose(run.info["paid_at_truncation"], expected["cut"], atol=1e-5)
     np.testing.assert_allclose(run.reward, expected["paid"] - plain.info["cost"], atol=1e-5)
     episode = np.concatenate([[0], np.cumsum(done)[:-1]])
     finished = episode < episode[-1]
@@ -139,6 +141,23 @@ def test_budget_is_traced_and_vmaps():
     np.testing.assert_array_equal(jax.vmap(measured_twice)(stacked), [0, 1, 2])
 
 
+@pytest.mark.parametrize("instruments", [(), "default"])
+def test_a_budget_allows_at_most_its_whole_number_of_measurements(rollout, instruments):
+    """"At most B": `amjax.make` refuses a fractional budget, and one set in the params by hand counts as its
+    floor (2.5 allows 2 paid measurements an episode, not 3, and the fraction left is 0 once they are made)."""
+    with pytest.raises(ValueError, match="budget: got 2.5; allowed values: whole numbers >= 0"):
+        amjax.make("CartPole-v0", budget=2.5, instruments=instruments)
+    env, params = amjax.make("CartPole-v0", budget=2.0, instruments=instruments)
+    read = N * (3 if instruments else 1)  # control 0, every instrument read
+    run = rollout(env, params.replace(budget=jnp.float32(2.5)), jax.random.key(0), jnp.full(6, read))
+    readings = run.info["readings"].sum(-1) if instruments else run.info["measured"].astype(int)
+    assert readings.sum() == 2 and not (run.terminated | run.truncated).any()
+    # The fraction left: 1 - used / 2.5 while measurements remain, 0 once the floor is spent (both instruments read
+    # at once spend it on the first step).
+    left = [0.0] * 6 if instruments else [0.6] + [0.0] * 5
+    np.testing.assert_allclose(run.obs[:, -1], left, atol=1e-6)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
@@ -147,6 +166,8 @@ def test_budget_is_traced_and_vmaps():
         ({"extra_obs": ("last_action", "last_action")}, "extra_obs"),
         ({"budget": -1.0}, "budget"),
         ({"budget": float("nan")}, "budget"),
+        ({"budget": 0.5}, "budget: got 0.5; allowed values: whole numbers"),
+        ({"budget": [1.0, 2.5]}, "budget"),
         ({"reward_timing": "later"}, "reward_timing"),
     ],
 )
