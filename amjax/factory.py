@@ -37,7 +37,7 @@ def make(
 
     Args:
       env_id: "CartPole-v0" (200 steps, the paper's), "CartPole-v1", "Acrobot-v1", "LunarLander-v3", any
-        gymnax id, "brax:<env_name>[:<backend>]" for a brax environment (needs `pip install "amjax-rl[brax]"`;
+        gymnax id, `"brax:<env_name>[:<backend>]"` for a brax environment (needs `pip install "amjax-rl[brax]"`;
         docs/brax.md), or one added with `amjax.envs.register`.
       cost: charged per measurement (>= 0, finite). A number or an array of numbers (then vmap over params).
       mode: what the agent sees without measuring: "last" (the last measured observation), "random"

@@ -23,22 +23,6 @@ RESULTS = "benchmarks/results"
 API_SECTION = "API reference"
 # The nav's API sections, in the order the data flows (env -> wrapper -> agent -> sweep -> results).
 API_GROUPS = ("envs", "wrappers", "agents", "sweep", "analysis")
-# Pages written out where a module's docstrings need it. ActiveMeasureWrapper's Args name several parameters on one
-# line ("extra_obs, budget, reward_timing: ..."), which Google style does not parse: griffe warns (and --strict
-# fails) unless that one class is rendered with those warnings off. Drop this once each parameter has its own line.
-# (An `options:` block applies to the object it names, not to its members, hence the class's own block.)
-MODULE_PAGES = {
-    "amjax.wrappers.gymnasium": """::: amjax.wrappers.gymnasium
-    options:
-      filters: ["!^_", "!^ActiveMeasureWrapper$"]
-
-::: amjax.wrappers.gymnasium.ActiveMeasureWrapper
-    options:
-      heading_level: 2
-      show_root_full_path: false
-      docstring_options: {warn_unknown_params: false, warn_missing_types: false}
-""",
-}
 
 
 def public_modules() -> list[str]:
@@ -83,7 +67,7 @@ def on_config(config):
 
 def on_files(files: Files, config) -> Files:
     for module in public_modules():
-        content = MODULE_PAGES.get(module, f"::: {module}\n")
+        content = f"::: {module}\n"
         files.append(File.generated(config, api_page(module), content=content))
     for path in sorted((ROOT / RESULTS).iterdir()):
         if path.is_file():

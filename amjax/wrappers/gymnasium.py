@@ -131,15 +131,17 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
       flag: append the measured flag to the observation.
       noise_std: standard deviation for mode "noisy" (required there, > 0; elsewhere None or 0), checked with
         `amjax.make`'s check.
-      extra_obs, budget, reward_timing: the options of `amjax.make`, with the same meaning and observation layout
-        ("since_measured" scales by the env's time limit, `env.spec.max_episode_steps`, which it then needs) and
-        info keys (with "on_measure", `info["paid_at_truncation"]`: leave it out of a target that bootstraps at a
-        truncation, as `amjax.wrappers.active_measure` explains).
-      instruments, instrument_costs, instrument_noise: `amjax.make`'s instruments (a tuple of observation-index
-        tuples; "default" needs the env id, so pass the indices), their prices and reading noise (k numbers each,
-        default zeros). The action encoding and layout are the JAX wrapper's; `info["readings"]` holds the k
-        readings made. Reading noise is drawn from the wrapper's own generator, so it matches the JAX wrapper
-        in distribution, not draw for draw.
+      extra_obs: `amjax.make`'s staleness features, with the same meaning and observation layout
+        ("since_measured" scales by the env's time limit, `env.spec.max_episode_steps`, which it then needs).
+      budget: `amjax.make`'s per-episode budget of measurements (a whole number), with the same info keys.
+      reward_timing: `amjax.make`'s reward timing; with "on_measure", `info["paid_at_truncation"]` is what a
+        target that bootstraps at a truncation leaves out (as `amjax.wrappers.active_measure` explains).
+      instruments: `amjax.make`'s instruments, a tuple of observation-index tuples ("default" needs the env id,
+        so pass the indices); the action encoding and layout are the JAX wrapper's, and `info["readings"]`
+        holds the k readings made.
+      instrument_costs: the instruments' prices (k numbers, default zeros).
+      instrument_noise: the instruments' reading noise stds (k numbers, default zeros), drawn from the wrapper's
+        own generator, so it matches the JAX wrapper in distribution, not draw for draw.
     """
 
     def __init__(
