@@ -16,7 +16,7 @@ Costs are per step, scaled to each env's rewards. inverted_pendulum pays 1 per s
 step over 1,000 steps: 0.001 / 0.003 / 0.01, so an always-measuring policy pays 1 / 3 / 10 per episode against
 returns of about -100 to -220 at this budget (doing nothing scores -223.5). reacher runs on brax's spring backend,
 7x its default generalized one on this CPU (docs/brax.md, Speed). Hyperparameters: PPO's defaults (plus an env's
-preset from train/presets.py where one exists; none does for these two).
+preset from amjax/presets.py where one exists; none does for these two).
 """
 
 from __future__ import annotations
@@ -36,9 +36,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks a
 
 from amjax.analysis import paper_table, to_markdown, write_report  # noqa: E402
 from amjax.analysis.report import format_paper_table  # noqa: E402
+from amjax.presets import env_hyperparams  # noqa: E402
 from amjax.sweep import run_sweep  # noqa: E402
 from amjax.sweep.grid import SweepSpec  # noqa: E402
-from train.presets import env_hyperparams  # noqa: E402
 
 # env id -> (costs, env steps per configuration, env steps between evaluations)
 EXPERIMENTS: dict[str, tuple[tuple[float, ...], int, int]] = {

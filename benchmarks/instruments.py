@@ -35,10 +35,10 @@ amjax.use_all_cores()  # one CPU device per core, before the imports below start
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
 
 from amjax.analysis import load_results, plot_measurement_map, record_agent, to_markdown  # noqa: E402
+from amjax.presets import env_hyperparams  # noqa: E402
 from amjax.sweep import load_sweep_policy, run_sweep  # noqa: E402
 from amjax.sweep.grid import SweepSpec  # noqa: E402
 from amjax.wrappers.instruments import DEFAULT_INSTRUMENTS  # noqa: E402
-from train.presets import env_hyperparams  # noqa: E402
 
 # name -> env id, agents, occasion costs, instrument prices (one tuple per setting), env steps, steps per evaluation
 EXPERIMENTS = {

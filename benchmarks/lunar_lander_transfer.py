@@ -28,13 +28,13 @@ amjax.use_all_cores()  # one CPU device per core, before the imports below start
 
 from amjax.agents.saved import SavedPolicy, load_policy  # noqa: E402
 from amjax.analysis.maps import record_agent  # noqa: E402
+from amjax.presets import LUNAR_LANDER_PPO  # noqa: E402
 from amjax.sweep import SweepSpec, run_sweep  # noqa: E402
-from train.presets import LUNAR_LANDER_PPO  # noqa: E402
 
 ENV_ID = "LunarLander-v3"
 SOLVED = 200.0
 
-# PPO hyperparameters: the RL Baselines3 Zoo's tuned LunarLander entry (sources and details in train/presets.py).
+# PPO hyperparameters: the RL Baselines3 Zoo's tuned LunarLander entry (sources and details in amjax/presets.py).
 # Differences that remain: amjax clips the value loss with clip_eps (SB3 does not by default) and initialises with a
 # scaled normal instead of orthogonal matrices (amjax/agents/networks.py).
 HYPERPARAMS = LUNAR_LANDER_PPO

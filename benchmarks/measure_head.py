@@ -2,7 +2,7 @@
 control head plus a measure head, for Dueling DQN and PPO at costs 0.1 / 0.2 / 0.3.
 
 One sweep per env (`amjax.sweep.run_sweep`, resumable; the paper's budget and the env's presets from
-train/presets.py), `measure_head` swept as a static field (two compiled programs per agent). Per env, agent, cost
+amjax/presets.py), `measure_head` swept as a static field (two compiled programs per agent). Per env, agent, cost
 and head, medians over seeds of: the best test costed reward (the paper's metric, biased upward), the same best
 policies re-scored on 100 fresh episodes, the measured fraction of those episodes, and for sample efficiency the mean
 evaluation costed reward over training (the area under the learning curve, divided by the number of evaluations)
@@ -28,9 +28,10 @@ amjax.use_all_cores()  # one CPU device per core, before the imports below start
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
 
 from amjax.analysis import load_results, to_markdown  # noqa: E402
+from amjax.presets import env_hyperparams  # noqa: E402
 from amjax.sweep import run_sweep  # noqa: E402
 from amjax.sweep.grid import SweepSpec  # noqa: E402
-from train.presets import REPLICATE_BUDGETS, env_hyperparams  # noqa: E402
+from train.presets import REPLICATE_BUDGETS  # noqa: E402
 
 AGENTS = ("dqn", "ppo")
 COSTS = (0.1, 0.2, 0.3)

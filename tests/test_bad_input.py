@@ -131,6 +131,8 @@ COMMAND_CASES = [
     ("pareto", ["--agent", "sarsa"], "sarsa"),
     ("pareto", ["--cost-high", "0.2", "--specialist-costs", "0.1", "0.3"],
      "--specialist-costs: got 0.3, above --cost-high 0.2"),
+    ("pareto", ["--seeds", "2", "--seed-list", "3", "4"], "--seeds and --seed-list: give one of them"),
+    ("pareto", ["--seed-list", "-1"], "seed: got -1"),
 ]
 
 

@@ -24,6 +24,7 @@ amjax.use_all_cores()
 
 from amjax.agents import ALGORITHMS  # noqa: E402
 from amjax.envs.registry import make_env  # noqa: E402
+from amjax.presets import ENV_PRESETS  # noqa: E402
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep  # noqa: E402
 from amjax.sweep.cluster import ClusterError  # noqa: E402
 from amjax.sweep.devices import sweep_devices  # noqa: E402
@@ -37,7 +38,7 @@ from train.flags import (  # noqa: E402
     disk_error_message,
     make_loggers,
 )
-from train.presets import PRESETS, REPLICATE_HYPERPARAMS  # noqa: E402
+from train.presets import PRESETS  # noqa: E402
 
 
 def _parse_value(text: str) -> Any:
@@ -116,8 +117,8 @@ def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
                        help="a hyperparameter value or list of values, e.g. learning_rate=1e-3,3e-4 or ppo.num_envs=16 "
                        "(traced fields are vmapped; static ones such as hidden=(128,128) compile separately)")
     sweep.add_argument("--env-defaults", action=argparse.BooleanOptionalAction, default=True,
-                       help="start each env from its tuned hyperparameters (train/presets.py: Acrobot-v1's and "
-                       "LunarLander-v3's PPO); --set values override them")
+                       help="start each env from its tuned hyperparameters (amjax.presets: "
+                       f"{', '.join(ENV_PRESETS)}); --set values override them")
     sweep.add_argument("--out", required=True, help="output folder (rerun with the same folder to resume)")
     sweep.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
     sweep.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -128,7 +129,7 @@ def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
     demo.add_argument("--out", default="runs/demo", help="output folder")
     demo.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
-    commands.add_parser("presets", help="list the named sweeps")
+    commands.add_parser("presets", help="list the named sweeps and each environment's tuned settings")
     report.add_parser(commands)
     replicate.add_parser(commands)
     pareto.add_parser(commands)
@@ -168,10 +169,26 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
         except (ValueError, ImportError) as error:
             raise type(error)(f"--env: {str(error).removeprefix('env_id: ')}") from None
     spec = dataclasses.replace(spec, **changes)
-    if args.env_defaults:
-        spec = dataclasses.replace(spec, env_defaults={
-            env: dict(REPLICATE_HYPERPARAMS[env]) for env in spec.envs if env in REPLICATE_HYPERPARAMS})
-    return spec
+    # Each env's tuned presets (amjax.presets) unless --no-env-defaults, as `SweepSpec` applies them from Python.
+    return dataclasses.replace(spec, env_defaults=None if args.env_defaults else {})
+
+
+def describe_presets(spec: SweepSpec) -> list[str]:
+    """One line per env and agent of the sweep that starts from tuned presets: which values."""
+    lines = []
+    for env, values in spec.resolved_env_defaults().items():
+        for agent in spec.agents:
+            fields = ALGORITHMS[agent].config_type.__dataclass_fields__
+            mine = {k.removeprefix(f"{agent}."): v for k, v in values.items()
+                    if k.startswith(f"{agent}.") or ("." not in k and k in fields)}
+            if mine:
+                lines.append(f"{env} {agent} starts from its presets (amjax.presets; --no-env-defaults: none, --set "
+                             "overrides one): " + ", ".join(f"{k}={_value_text(v)}" for k, v in mine.items()))
+    return lines
+
+
+def _value_text(value: Any) -> str:
+    return "x".join(map(str, value)) if isinstance(value, tuple) else str(value)
 
 
 def describe_devices() -> str:
@@ -245,6 +262,9 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         for name, spec in PRESETS.items():
             runs = len(expand(spec))
             print(f"{name}: {runs} configurations x {spec.total_timesteps:,} steps — {spec}")
+        print("\nEach environment's tuned settings (amjax.presets), applied by every command and SweepSpec:")
+        for env, values in ENV_PRESETS.items():
+            print(f"{env}: " + ", ".join(f"{key}={_value_text(value)}" for key, value in values.items()))
         return 0
     metadata: dict[str, Any] = {}
     try:
@@ -267,6 +287,8 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         loggers = make_loggers(args, args.out)
     except (ValueError, TypeError, ImportError) as error:
         parser.error(str(error))  # exits with status 2
+    for line in describe_presets(spec):
+        print(f"{parser.prog}: {line}")
     print(f"{parser.prog}: {describe_devices()}")
     try:
         result = run_sweep(spec, args.out, max_batch=max_batch, progress=not args.no_progress, loggers=loggers,

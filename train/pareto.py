@@ -24,7 +24,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--env", default="CartPole-v0", help="environment id (default: CartPole-v0)")
     parser.add_argument("--agent", nargs="+", default=["dqn", "ppo"], metavar="AGENT", help="agents (default: dqn ppo)")
-    parser.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1 (default: 5)")
+    parser.add_argument("--seeds", type=int, metavar="N", help="seeds 0..N-1 (default: 5)")
+    parser.add_argument("--seed-list", nargs="+", type=int, metavar="S", help="explicit seeds instead")
     parser.add_argument("--cost-high", type=float, default=0.5,
                         help="costs are drawn from [0, COST_HIGH] (default: 0.5)")
     parser.add_argument("--grid-step", type=float, default=0.05,
@@ -41,12 +42,15 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def _specs(args: argparse.Namespace) -> tuple[Any, Any, list[float]]:
     """The conditioned and specialist sweeps and the cost grid, checked before anything runs."""
+    from amjax.presets import env_hyperparams
     from amjax.sweep import SweepSpec, expand
     from amjax.sweep.grid import round_schedule
     from amjax.validation import check_positive_int, check_real
-    from train.presets import QUICK_BUDGETS, REPLICATE_BUDGETS, env_hyperparams
+    from train.presets import QUICK_BUDGETS, REPLICATE_BUDGETS
 
-    check_positive_int("--seeds", args.seeds)
+    if args.seeds is not None and args.seed_list:
+        raise ValueError("--seeds and --seed-list: give one of them")
+    seeds = tuple(args.seed_list) if args.seed_list else tuple(range(check_positive_int("--seeds", 5 if args.seeds is None else args.seeds)))
     high = float(check_real("--cost-high", args.cost_high, low=0.0, low_inclusive=False))
     step = float(check_real("--grid-step", args.grid_step, low=0.0, high=high, low_inclusive=False))
     for cost in args.specialist_costs:
@@ -59,7 +63,7 @@ def _specs(args: argparse.Namespace) -> tuple[Any, Any, list[float]]:
     steps = steps if args.steps is None else check_positive_int("--steps", args.steps)
     every = every if args.eval_every is None else check_positive_int("--eval-every", args.eval_every)
     agents = tuple(args.agent)
-    common = {"envs": (args.env,), "agents": agents, "seeds": tuple(range(args.seeds)), "eval_every": every,
+    common = {"envs": (args.env,), "agents": agents, "seeds": seeds, "eval_every": every,
               "env_defaults": {args.env: env_hyperparams(args.env, agents)}}
     specialists, _ = round_schedule(SweepSpec(**common, costs=tuple(args.specialist_costs) or (0.1,),
                                               total_timesteps=steps))
@@ -98,7 +102,9 @@ def run(args: argparse.Namespace, error: Any) -> int:
     points = cost_front(out / "conditioned", grid)
     points.to_csv(out / "front.csv", index=False)
     ratio = conditioned.total_timesteps / (specialists or conditioned).total_timesteps
-    lines = [f"# Cost front: {args.env}, agents {', '.join(args.agent)}, seeds 0-{args.seeds - 1}", "",
+    seeds = conditioned.seeds
+    shown = f"0-{seeds[-1]}" if seeds == tuple(range(len(seeds))) else " ".join(map(str, seeds))
+    lines = [f"# Cost front: {args.env}, agents {', '.join(args.agent)}, seeds {shown}", "",
              f"Conditioned agents: costs drawn from [0, {args.cost_high}], {conditioned.total_timesteps:,} env steps "
              f"each ({ratio:.2f}x a specialist's). Medians over seeds, 100 fresh test episodes per cost.", "",
              to_markdown(_costs_as_text(front_medians(points))), ""]

@@ -5,7 +5,7 @@ from amjax.agents.dqn import DQN, DQNConfig
 from amjax.agents.drqn import DRQN, DRQNConfig
 from amjax.agents.ppo import PPO, PPOConfig
 from amjax.agents.ppo_rnn import PPO_RNN, PPORNNConfig
-from amjax.agents.registry import ALGORITHMS, agent_of, algorithm
+from amjax.agents.registry import ALGORITHMS, agent_of, algorithm, config_for
 from amjax.agents.saved import PolicyFileError, SavedPolicy, load_policy, save_policy
 from amjax.agents.setup import Setup, training_env
 from amjax.agents.training import (
@@ -40,6 +40,7 @@ __all__ = [
     "Setup",
     "agent_of",
     "algorithm",
+    "config_for",
     "evaluate",
     "evaluate_greedy",
     "init_run",

@@ -1,6 +1,9 @@
-"""The algorithm registry: every trainer by name, and the lookups by name and by config type."""
+"""The algorithm registry: every trainer by name, the lookups by name and by config type, and `config_for` (an agent's
+config for an env, from the env's tuned presets)."""
 
 from __future__ import annotations
+
+from typing import Any
 
 from amjax.agents.config import AgentConfig
 from amjax.agents.dqn import DQN
@@ -8,6 +11,7 @@ from amjax.agents.drqn import DRQN
 from amjax.agents.ppo import PPO
 from amjax.agents.ppo_rnn import PPO_RNN
 from amjax.agents.training import Algorithm
+from amjax.presets import preset
 
 ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN, DRQN, PPO_RNN)}
 
@@ -19,6 +23,16 @@ def algorithm(agent: str) -> Algorithm:
     return ALGORITHMS[agent]
 
 
+def config_for(env_id: str, agent: str, *, presets: bool = True, **fields: Any) -> AgentConfig:
+    """`agent`'s config for `env_id`: the env's tuned presets for that agent (`amjax.presets`, as every command and
+    `SweepSpec` applies them; `presets=False` for none), then `fields` on top, e.g.
+    `config_for("Acrobot-v1", "ppo", cost=0.2, total_timesteps=491_520)`. The config constructors themselves
+    (`PPOConfig(env_id=...)`) never apply presets."""
+    config_type = algorithm(agent).config_type
+    values = preset(env_id, agent) if presets else {}
+    return config_type(env_id=env_id, **{**values, **fields})
+
+
 def agent_of(config: AgentConfig) -> str:
     """The registered name of the algorithm whose config type `config` is (exactly)."""
     for name, algo in ALGORITHMS.items():
@@ -27,4 +41,4 @@ def agent_of(config: AgentConfig) -> str:
     raise TypeError(f"config: no registered algorithm uses {type(config).__name__}")
 
 
-__all__ = ["ALGORITHMS", "agent_of", "algorithm"]
+__all__ = ["ALGORITHMS", "agent_of", "algorithm", "config_for"]

@@ -15,6 +15,7 @@ from typing import Any
 from amjax.agents import ALGORITHMS, AgentConfig
 from amjax.agents.config import nearest_schedule
 from amjax.envs.registry import make_env
+from amjax.presets import ENV_PRESETS
 from amjax.validation import check_choice, check_positive_int, check_real
 
 # Fields that define the sweep's schedule and evaluation points: one value for the whole sweep.
@@ -37,8 +38,8 @@ class SweepSpec:
     one program per value. `vanilla` adds, per env, agent and seed, a run on the plain environment (the paper's
     baseline; per combination of the other hyperparameters, not of the active-measure ones in `MEASURE_FIELDS`,
     which a plain env does not take). `env_defaults` maps an env id to hyperparameter values (same keys as
-    `hyperparams`, one value each) that its configurations start from, e.g. a tuned preset; `hyperparams` override
-    them.
+    `hyperparams`, one value each) that its configurations start from; `hyperparams` override them. None (the
+    default) is each env's tuned presets (`amjax.presets.ENV_PRESETS`, what the commands apply), {} none.
 
     Seeds are paired by design: every configuration with seed s starts from `jax.random.PRNGKey(s)`, whatever its
     cost, agent or hyperparameters, so configurations that differ only in cost share their network initialisation,
@@ -58,10 +59,18 @@ class SweepSpec:
     vanilla: bool = False
     mode: str = "last"
     hyperparams: Mapping[str, Any] = field(default_factory=dict)
-    env_defaults: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    env_defaults: Mapping[str, Mapping[str, Any]] | None = None
+
+    def resolved_env_defaults(self) -> Mapping[str, Mapping[str, Any]]:
+        """`env_defaults`, or (None) the tuned presets of this sweep's envs that have some."""
+        if self.env_defaults is not None:
+            return self.env_defaults
+        return {env: dict(ENV_PRESETS[env]) for env in self.envs if env in ENV_PRESETS}
 
     def to_json(self) -> dict[str, Any]:
-        return json.loads(json.dumps(dataclasses.asdict(self), default=list))
+        """The spec as JSON (what a sweep folder's metadata holds), with `env_defaults` resolved."""
+        data = dataclasses.asdict(self) | {"env_defaults": self.resolved_env_defaults()}
+        return json.loads(json.dumps(data, default=list))
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> SweepSpec:
@@ -176,7 +185,7 @@ def validate_spec(spec: SweepSpec) -> None:
                 f"allowed: {', '.join(sorted(_all_fields(agents)))}"
             )
         _as_values(key, value)
-    for env_id, defaults in spec.env_defaults.items():
+    for env_id, defaults in spec.resolved_env_defaults().items():
         for key, value in defaults.items():
             name = split_hyperparam(key)[1]
             if isinstance(value, list) or name in SCHEDULE_FIELDS + GRID_FIELDS or name not in _all_fields(
@@ -248,7 +257,8 @@ def _runs(spec: SweepSpec) -> Iterator[RunConfig]:
     """The grid's configurations in order, their agent configs not yet validated."""
     for env, agent in itertools.product(spec.envs, spec.agents):
         config_type = ALGORITHMS[agent].config_type
-        defaults = {name: value for name, (_, value) in _applicable(spec.env_defaults.get(env, {}), agent).items()}
+        preset = spec.resolved_env_defaults().get(env, {})
+        defaults = {name: value for name, (_, value) in _applicable(preset, agent).items()}
         applies = agent_hyperparams(spec, agent)  # field -> (spec key, value)
         own = {key: _as_values(key, value) for key, value in applies.values()}
         field_of = {key: name for name, (key, _) in applies.items()}

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from amjax.agents import DQN, PPO, DQNConfig, PPOConfig, init_run, run_evals, stack_configs
-from train.presets import env_hyperparams
+from amjax.presets import env_hyperparams
 
 SEEDS = (0, 1, 2)
 COSTS = (0.0, 0.2)

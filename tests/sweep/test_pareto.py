@@ -59,3 +59,15 @@ def test_table_ratio_against_the_specialists(front_folder):
 def test_front_of_an_ordinary_sweep_is_refused(front_folder):
     with pytest.raises(ValueError, match="not cost-conditioned"):
         cost_front(front_folder / "specialists", costs=(0.1,))
+
+
+def test_seed_list_picks_the_seeds_of_both_sweeps():
+    """`amjax pareto --seed-list` works as `amjax sweep --seed-list` does."""
+    from train.cli import build_parser
+    from train.pareto import _specs
+
+    args = build_parser().parse_args(["pareto", "--seed-list", "7", "11", "--out", "x"])
+    conditioned, specialists, _ = _specs(args)
+    assert conditioned.seeds == specialists.seeds == (7, 11)
+    default, _, _ = _specs(build_parser().parse_args(["pareto", "--out", "x"]))
+    assert default.seeds == (0, 1, 2, 3, 4)

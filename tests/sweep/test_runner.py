@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -14,7 +15,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from amjax.agents import ALGORITHMS, config_for
 from amjax.files import atomic_write, folder_lock
+from amjax.presets import ENV_PRESETS, preset
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, expand, group_runs, run_sweep
 from amjax.sweep.storage import load_checkpoint, save_checkpoint, seed_table, summarize
 from train.cli import main
@@ -377,7 +380,7 @@ def test_cli_sweep_starts_each_env_from_its_tuned_defaults():
     args = build_parser().parse_args(["sweep", "--env", "CartPole-v0", "Acrobot-v1", "--agent", "ppo", "dqn",
                                       "--set", "ppo.ent_coef=0.05", "--out", "x"])
     configs = {(r.env, r.agent): r.config for r in expand(spec_from_args(args))}
-    assert configs["Acrobot-v1", "ppo"].reward_scale == 0.1  # train/presets.py's Acrobot PPO
+    assert configs["Acrobot-v1", "ppo"].reward_scale == 0.1  # amjax.presets's Acrobot PPO
     assert configs["Acrobot-v1", "ppo"].ent_coef == pytest.approx(0.05)  # --set wins
     assert configs["CartPole-v0", "ppo"].reward_scale == 1.0
     assert (configs["Acrobot-v1", "dqn"].hidden, configs["Acrobot-v1", "dqn"].n_step) == ((128, 128), 3)  # ACROBOT_DQN
@@ -390,3 +393,39 @@ def test_cli_sweep_starts_each_env_from_its_tuned_defaults():
     args = build_parser().parse_args(["sweep", "--env", "Acrobot-v1", "--agent", "ppo", "--no-env-defaults",
                                       "--out", "x"])
     assert expand(spec_from_args(args))[0].config.reward_scale == 1.0
+
+
+@pytest.mark.parametrize("env", sorted(ENV_PRESETS))
+def test_the_cli_and_the_library_build_the_same_configs(env):
+    """One source of defaults: for every env with presets and every agent, the command line, `SweepSpec` from
+    Python and `config_for` build the same config; each one's opt-out gives the agent's own defaults."""
+    from train.cli import build_parser, spec_from_args
+
+    agents = sorted({key.partition(".")[0] for key in ENV_PRESETS[env]})
+    schedule = {"total_timesteps": 32768, "eval_every": 16384}
+    flags = ["sweep", "--env", env, "--agent", *agents, "--cost", "0.2", "--seeds", "1", "--steps", "32768",
+             "--eval-every", "16384", "--out", "x"]
+    cli = {r.agent: r.config for r in expand(spec_from_args(build_parser().parse_args(flags)))}
+    library = {r.agent: r.config for r in expand(SweepSpec(envs=(env,), agents=tuple(agents), costs=(0.2,), seeds=(0,),
+                                                           **schedule))}
+    for agent in agents:
+        alone = config_for(env, agent, cost=0.2, **schedule)
+        assert cli[agent] == library[agent] == alone, agent
+        assert preset(env, agent) and all(getattr(alone, k) == v for k, v in preset(env, agent).items())
+        plain = config_for(env, agent, presets=False, cost=0.2, **schedule)
+        assert plain == ALGORITHMS[agent].config_type(env_id=env, cost=0.2, **schedule) != alone
+    off = spec_from_args(build_parser().parse_args([*flags, "--no-env-defaults"]))
+    opted_out = {r.agent: r.config for r in expand(off)}
+    assert opted_out == {r.agent: r.config for r in expand(SweepSpec(envs=(env,), agents=tuple(agents), costs=(0.2,),
+                                                                     seeds=(0,), env_defaults={}, **schedule))}
+    assert all(opted_out[a] == config_for(env, a, presets=False, cost=0.2, **schedule) for a in agents)
+
+
+def test_a_python_spec_stores_the_presets_it_used():
+    """`env_defaults=None` is stored resolved, so a folder says which presets its configurations started from and
+    a command-line sweep of the same grid resumes it."""
+    spec = SweepSpec(envs=("CartPole-v0", "Acrobot-v1"), agents=("ppo",))
+    stored = spec.to_json()["env_defaults"]
+    assert stored == json.loads(json.dumps({"Acrobot-v1": ENV_PRESETS["Acrobot-v1"]}, default=list))
+    assert SweepSpec.from_json(spec.to_json()).to_json() == spec.to_json()
+    assert SweepSpec(envs=("Acrobot-v1",), env_defaults={}).to_json()["env_defaults"] == {}
