@@ -23,6 +23,7 @@ from amjax.cores import cpu_model
 amjax.use_all_cores()
 
 from amjax.agents import ALGORITHMS  # noqa: E402
+from amjax.agents.registry import agent_list  # noqa: E402
 from amjax.envs.registry import make_env  # noqa: E402
 from amjax.presets import ENV_PRESETS  # noqa: E402
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, SweepTooLargeError, run_sweep  # noqa: E402
@@ -103,7 +104,7 @@ def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
     )
     sweep.add_argument("--preset", choices=sorted(PRESETS), help="start from a named sweep; flags override it")
     sweep.add_argument("--env", nargs="+", metavar="ENV", help="environment ids, e.g. CartPole-v0 Acrobot-v1")
-    sweep.add_argument("--agent", nargs="+", metavar="AGENT", help=f"agents: {', '.join(sorted(ALGORITHMS))}")
+    sweep.add_argument("--agent", nargs="+", metavar="AGENT", help=f"agents: {agent_list()}")
     sweep.add_argument("--cost", nargs="+", type=float, metavar="C", help="measurement costs (>= 0)")
     sweep.add_argument("--seeds", type=int, metavar="N", help="number of seeds (0..N-1)")
     sweep.add_argument("--seed-list", nargs="+", type=int, metavar="S", help="explicit seeds instead")
@@ -162,7 +163,7 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
         changes["hyperparams"] = {**spec.hyperparams, **_parse_set(args.set)}
     for agent in changes.get("agents", ()):
         if agent not in ALGORITHMS:
-            raise ValueError(f"--agent: unknown agent {agent!r}; allowed values: {', '.join(sorted(ALGORITHMS))}")
+            raise ValueError(f"--agent: unknown agent {agent!r}; allowed values: {agent_list()}")
     for env in changes.get("envs", ()):
         try:
             make_env(env)  # cheap; a brax id ("brax:<env_name>[:<backend>]") loads its model, about a second

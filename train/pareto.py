@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from amjax.agents.registry import agent_list
+
 PROG = "python -m train pareto"
 STEPS_FACTOR = 1.5  # the conditioned run's env steps, at most this many times one specialist's
 
@@ -23,7 +25,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "pareto", help="one cost-conditioned agent per seed: the cost front, with per-cost specialists",
         description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--env", default="CartPole-v0", help="environment id (default: CartPole-v0)")
-    parser.add_argument("--agent", nargs="+", default=["dqn", "ppo"], metavar="AGENT", help="agents (default: dqn ppo)")
+    parser.add_argument("--agent", nargs="+", default=["dqn", "ppo"], metavar="AGENT",
+                        help=f"agents (default: dqn ppo): {agent_list()}")
     parser.add_argument("--seeds", type=int, metavar="N", help="seeds 0..N-1 (default: 5)")
     parser.add_argument("--seed-list", nargs="+", type=int, metavar="S", help="explicit seeds instead")
     parser.add_argument("--cost-high", type=float, default=0.5,
@@ -50,7 +53,8 @@ def _specs(args: argparse.Namespace) -> tuple[Any, Any, list[float]]:
 
     if args.seeds is not None and args.seed_list:
         raise ValueError("--seeds and --seed-list: give one of them")
-    seeds = tuple(args.seed_list) if args.seed_list else tuple(range(check_positive_int("--seeds", 5 if args.seeds is None else args.seeds)))
+    count = check_positive_int("--seeds", 5 if args.seeds is None else args.seeds)
+    seeds = tuple(args.seed_list) if args.seed_list else tuple(range(count))
     high = float(check_real("--cost-high", args.cost_high, low=0.0, low_inclusive=False))
     step = float(check_real("--grid-step", args.grid_step, low=0.0, high=high, low_inclusive=False))
     for cost in args.specialist_costs:

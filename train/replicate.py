@@ -52,7 +52,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         help=f"a subset of {', '.join(REPLICATE_BUDGETS)}")
     parser.add_argument("--agent", nargs="+", metavar="AGENT",
                         help="these agents on every env (default: the paper's: dqn and ppo everywhere, drqn on "
-                        "CartPole-v0)")
+                        "CartPole-v0); agents: ppo, dqn (Dueling Double DQN with n-step returns), drqn, ppo-rnn")
     parser.add_argument("--extended", action="store_true",
                         help=f"the extended grid: {', '.join(EXTENDED_AGENTS)} on every env")
     parser.add_argument("--seeds", type=int, help="seeds per setting (default: 10; 2 with --quick)")

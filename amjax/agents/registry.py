@@ -14,12 +14,24 @@ from amjax.agents.training import Algorithm
 from amjax.presets import preset
 
 ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN, DRQN, PPO_RNN)}
+# What each agent is, in the words every listing of the agents uses (the commands' help, the docs).
+DESCRIPTIONS: dict[str, str] = {
+    "ppo": "PPO",
+    "dqn": "Dueling Double DQN with n-step returns",
+    "drqn": "recurrent Dueling Double DQN, R2D2-style sequence replay",
+    "ppo-rnn": "recurrent PPO",
+}
+
+
+def agent_list() -> str:
+    """Every agent id with what it is, e.g. "ppo (PPO), dqn (Dueling Double DQN with n-step returns), ..."."""
+    return ", ".join(f"{name} ({DESCRIPTIONS[name]})" for name in ALGORITHMS)
 
 
 def algorithm(agent: str) -> Algorithm:
     """The registered algorithm named `agent`; ValueError listing the names otherwise."""
     if agent not in ALGORITHMS:
-        raise ValueError(f"agent: unknown agent {agent!r}; allowed values: {', '.join(sorted(ALGORITHMS))}")
+        raise ValueError(f"agent: unknown agent {agent!r}; allowed values: {agent_list()}")
     return ALGORITHMS[agent]
 
 
@@ -41,4 +53,4 @@ def agent_of(config: AgentConfig) -> str:
     raise TypeError(f"config: no registered algorithm uses {type(config).__name__}")
 
 
-__all__ = ["ALGORITHMS", "agent_of", "algorithm", "config_for"]
+__all__ = ["ALGORITHMS", "DESCRIPTIONS", "agent_list", "agent_of", "algorithm", "config_for"]
