@@ -214,12 +214,16 @@ class TreeLayout:
         data = jax.eval_shape(key_data, *leaves)
         for x in data:
             kinds = (jnp.bool_, jnp.integer, jnp.floating)
-            if not any(jnp.issubdtype(x.dtype, kind) for kind in kinds) or np.dtype(x.dtype).itemsize == 1 and \
-                    jnp.issubdtype(x.dtype, jnp.floating):
-                raise TypeError(f"TreeLayout: a leaf of dtype {x.dtype}; allowed: bool, integer and floating leaves "
-                                "(floats of 16 bits or more), and typed PRNG keys")
-        return cls(treedef, tuple(tuple(x.shape) for x in data), tuple(np.dtype(x.dtype) for x in data),
-                   tuple(impls))
+            if (
+                not any(jnp.issubdtype(x.dtype, kind) for kind in kinds)
+                or np.dtype(x.dtype).itemsize == 1
+                and jnp.issubdtype(x.dtype, jnp.floating)
+            ):
+                raise TypeError(
+                    f"TreeLayout: a leaf of dtype {x.dtype}; allowed: bool, integer and floating leaves "
+                    "(floats of 16 bits or more), and typed PRNG keys"
+                )
+        return cls(treedef, tuple(tuple(x.shape) for x in data), tuple(np.dtype(x.dtype) for x in data), tuple(impls))
 
     @property
     def size(self) -> int:
@@ -234,8 +238,10 @@ class TreeLayout:
             leaves = self.treedef.flatten_up_to(tree)
         except (ValueError, TypeError) as error:
             raise ValueError(f"TreeLayout: the tree's structure differs from the example's: {error}") from None
-        paths = [jax.tree_util.keystr(path) for path, _ in
-                 jax.tree_util.tree_flatten_with_path(jax.tree.unflatten(self.treedef, range(len(leaves))))[0]]
+        paths = [
+            jax.tree_util.keystr(path)
+            for path, _ in jax.tree_util.tree_flatten_with_path(jax.tree.unflatten(self.treedef, range(len(leaves))))[0]
+        ]
         for path, x, shape, dtype, impl in zip(paths, leaves, self.shapes, self.dtypes, self.key_impls, strict=True):
             scalar = isinstance(x, bool | int | float) and impl is None and shape == ()
             if scalar:
@@ -255,15 +261,19 @@ class TreeLayout:
         """`tree` (laid out as the example; see `check`) as one uint32 vector of `size` words."""
         self.check(tree)
         leaves = self.treedef.flatten_up_to(tree)
-        parts = [_to_words(jax.random.key_data(x) if impl is not None else jnp.asarray(x, dtype))
-                 for x, dtype, impl in zip(leaves, self.dtypes, self.key_impls, strict=True)]
+        parts = [
+            _to_words(jax.random.key_data(x) if impl is not None else jnp.asarray(x, dtype))
+            for x, dtype, impl in zip(leaves, self.dtypes, self.key_impls, strict=True)
+        ]
         return jnp.concatenate(parts) if parts else jnp.zeros(0, jnp.uint32)
 
     def unpack(self, words: jax.Array) -> Any:
         """The pytree that `pack` made `words` from."""
         if jnp.shape(words) != (self.size,) or jnp.result_type(words) != jnp.uint32:
-            raise ValueError(f"TreeLayout.unpack: words of shape {jnp.shape(words)} and dtype "
-                             f"{jnp.result_type(words)}; the layout packs to uint32[{self.size}]")
+            raise ValueError(
+                f"TreeLayout.unpack: words of shape {jnp.shape(words)} and dtype "
+                f"{jnp.result_type(words)}; the layout packs to uint32[{self.size}]"
+            )
         leaves, start = [], 0
         for shape, dtype in zip(self.shapes, self.dtypes, strict=True):
             stop = start + _words(shape, dtype)
@@ -312,5 +322,6 @@ def _keys_as_data(leaves: list[Any]) -> tuple[list[Any], list[Any]]:
 
 
 def _data_as_keys(leaves: list[Any], impls: Any) -> list[Any]:
-    return [x if impl is None else jax.random.wrap_key_data(x, impl=impl)
-            for x, impl in zip(leaves, impls, strict=True)]
+    return [
+        x if impl is None else jax.random.wrap_key_data(x, impl=impl) for x, impl in zip(leaves, impls, strict=True)
+    ]

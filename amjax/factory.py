@@ -70,10 +70,16 @@ def make(
     """
     check_bool("flag", flag)
     cost = check_real("cost", cost, low=0.0)
-    options = {"cost": bool(cost.any()), "extra_obs": bool(extra_obs), "budget": budget is not None,
-               "reward_timing": reward_timing != "immediate", "instruments": instruments != (),
-               "instrument_costs": instrument_costs is not None, "instrument_noise": instrument_noise is not None,
-               "cost_range": cost_range is not None}
+    options = {
+        "cost": bool(cost.any()),
+        "extra_obs": bool(extra_obs),
+        "budget": budget is not None,
+        "reward_timing": reward_timing != "immediate",
+        "instruments": instruments != (),
+        "instrument_costs": instrument_costs is not None,
+        "instrument_noise": instrument_noise is not None,
+        "cost_range": cost_range is not None,
+    }
     check_measure_setup(vanilla, mode, noise_std, options)  # the agent configs' check too
     if vanilla:
         return wrap(env_id, vanilla=True)
@@ -82,9 +88,16 @@ def make(
     noise_std = 0.0 if noise_std is None else check_real("noise_std", noise_std, low=0.0)
     if cost_range is not None:
         cost_range = check_cost_range(cost_range, cost)
-    wrapped, env_params = wrap(env_id, mode, flag, extra_obs=extra_obs, budgeted=budget is not None,
-                               reward_timing=reward_timing, instruments=instruments,
-                               cost_conditioned=cost_range is not None)
+    wrapped, env_params = wrap(
+        env_id,
+        mode,
+        flag,
+        extra_obs=extra_obs,
+        budgeted=budget is not None,
+        reward_timing=reward_timing,
+        instruments=instruments,
+        cost_conditioned=cost_range is not None,
+    )
     k = len(wrapped.instruments)
     prices = {
         name: ([0.0] * k if k else None) if value is None else check_instrument_values(name, value, k, batched=True)
@@ -96,8 +109,10 @@ def make(
 def check_cost_range(cost_range: Any, cost: Any) -> tuple[Any, Any]:
     """(low, high) with 0 <= low <= high, finite (arrays allowed, for vmap), and no fixed `cost` beside it."""
     if not isinstance(cost_range, tuple | list) or len(cost_range) != 2:
-        raise ValueError(f"cost_range: got {cost_range!r}; allowed values: a pair (low, high) of finite numbers "
-                         "with 0 <= low <= high")
+        raise ValueError(
+            f"cost_range: got {cost_range!r}; allowed values: a pair (low, high) of finite numbers "
+            "with 0 <= low <= high"
+        )
     low, high = (check_real("cost_range", value, low=0.0) for value in cost_range)
     if (low > high).any():
         raise ValueError(f"cost_range: got {cost_range!r}; allowed values: low <= high")
@@ -124,14 +139,28 @@ def wrap(
     env, env_params = make_env(env_id)
     if vanilla:
         return AlwaysMeasured(env, env_params), env_params
-    wrapped = ActiveMeasure(env, mode, flag, env_params, extra_obs, budgeted, reward_timing,
-                            resolve_instruments(env_id, instruments), cost_conditioned)
+    wrapped = ActiveMeasure(
+        env,
+        mode,
+        flag,
+        env_params,
+        extra_obs,
+        budgeted,
+        reward_timing,
+        resolve_instruments(env_id, instruments),
+        cost_conditioned,
+    )
     return wrapped, env_params
 
 
 def measure_params(
-    env_params: Any, cost: Any, noise_std: Any, budget: Any = None, instrument_costs: Any = None,
-    instrument_noise: Any = None, cost_range: Any = None,
+    env_params: Any,
+    cost: Any,
+    noise_std: Any,
+    budget: Any = None,
+    instrument_costs: Any = None,
+    instrument_noise: Any = None,
+    cost_range: Any = None,
 ) -> MeasureParams:
     """`MeasureParams` around the inner env's params; `cost`, `noise_std`, `budget` (None: no budget) and the
     instruments' prices and noise ([k]; None: no instruments) and the cost range ((low, high); None: a fixed cost)

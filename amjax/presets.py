@@ -106,18 +106,29 @@ ENV_PRESETS: dict[str, dict[str, object]] = {
 
 def env_hyperparams(env: str, agents: tuple[str, ...]) -> dict[str, object]:
     """`ENV_PRESETS[env]` restricted to `agents` (keys scoped to another agent dropped)."""
-    return {key: value for key, value in ENV_PRESETS.get(env, {}).items()
-            if "." not in key or key.partition(".")[0] in agents}
-
-
+    return {
+        key: value
+        for key, value in ENV_PRESETS.get(env, {}).items()
+        if "." not in key or key.partition(".")[0] in agents
+    }
 
 
 def preset(env_id: str, agent: str) -> dict[str, object]:
     """The tuned field values of `agent` on `env_id` (unscoped names; {} where there are none)."""
     prefix = f"{agent}."
-    return {key.removeprefix(prefix): value for key, value in ENV_PRESETS.get(env_id, {}).items()
-            if key.startswith(prefix)}
+    return {
+        key.removeprefix(prefix): value for key, value in ENV_PRESETS.get(env_id, {}).items() if key.startswith(prefix)
+    }
 
 
-__all__ = ["ACROBOT_DQN", "ACROBOT_PPO", "ENV_PRESETS", "LUNAR_LANDER_DQN", "LUNAR_LANDER_PPO", "PENDULUM_PPO",
-           "env_hyperparams", "preset", "scoped"]
+__all__ = [
+    "ACROBOT_DQN",
+    "ACROBOT_PPO",
+    "ENV_PRESETS",
+    "LUNAR_LANDER_DQN",
+    "LUNAR_LANDER_PPO",
+    "PENDULUM_PPO",
+    "env_hyperparams",
+    "preset",
+    "scoped",
+]

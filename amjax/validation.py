@@ -51,8 +51,12 @@ def check_real(
 
 def check_positive_int(name: str, value: Any, minimum: int = 1, maximum: int | None = None) -> int:
     """Check that `value` is an integer >= `minimum` (and <= `maximum` if given; bools are refused)."""
-    if (isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum
-            or (maximum is not None and value > maximum)):
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | np.integer)
+        or value < minimum
+        or (maximum is not None and value > maximum)
+    ):
         allowed = f"integers >= {minimum}" if maximum is None else f"integers in [{minimum}, {maximum:,}]"
         raise ValueError(f"{name}: got {value!r}; allowed values: {allowed}")
     return int(value)

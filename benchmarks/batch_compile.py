@@ -45,8 +45,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="LunarLander-v3", choices=list(REPLICATE_BUDGETS))
     parser.add_argument("--agent", default="dqn", choices=["dqn", "ppo", "drqn", "ppo-rnn"])
-    parser.add_argument("--batch", default="costed", choices=["costed", "vanilla"],
-                        help="the batch of costs 0-0.3 x seeds, or the vanilla one")
+    parser.add_argument(
+        "--batch",
+        default="costed",
+        choices=["costed", "vanilla"],
+        help="the batch of costs 0-0.3 x seeds, or the vanilla one",
+    )
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--probe-steps", type=int, default=8192, help="env steps per configuration per period")
     parser.add_argument("--options", nargs="+", default=list(OPTIONS), choices=list(OPTIONS))
@@ -59,15 +63,24 @@ def main() -> None:
     stacked, keys, period = probe_inputs(batch, args.probe_steps)
     init, chunk = compiled_programs(batch.algo, 1, devices)
     sharding = config_sharding(list(devices))
-    print(f"{args.env} {args.agent}, {args.batch} batch: {len(batch.runs)} configurations on {len(devices)} CPU "
-          f"devices; periods of {period:,} env steps per configuration", flush=True)
+    print(
+        f"{args.env} {args.agent}, {args.batch} batch: {len(batch.runs)} configurations on {len(devices)} CPU "
+        f"devices; periods of {period:,} env steps per configuration",
+        flush=True,
+    )
     start = time.perf_counter()
     states = jax.device_get(init(stacked, keys))  # traced, lowered and compiled with the default options
     configs_placed, states_placed = jax.device_put((stacked, states), sharding)
-    lowered = {"init": init.lower(stacked, keys), "chunk": chunk.lower(configs_placed, states_placed),
-               "rescore": rescore_program(batch.algo, devices).lower(configs_placed, states_placed)}
-    print(f"first initialisation (trace, lower, compile, run) and the others' tracing and lowering: "
-          f"{time.perf_counter() - start:.1f} s", flush=True)
+    lowered = {
+        "init": init.lower(stacked, keys),
+        "chunk": chunk.lower(configs_placed, states_placed),
+        "rescore": rescore_program(batch.algo, devices).lower(configs_placed, states_placed),
+    }
+    print(
+        f"first initialisation (trace, lower, compile, run) and the others' tracing and lowering: "
+        f"{time.perf_counter() - start:.1f} s",
+        flush=True,
+    )
     for name in args.options:
         options = OPTIONS[name]
         row: dict[str, object] = {"options": name}
@@ -82,8 +95,10 @@ def main() -> None:
         start = time.perf_counter()
         fresh = jax.device_get(compiled["init"](stacked, keys))
         row["init_run_s"] = round(time.perf_counter() - start, 2)
-        row["init_identical"] = all(np.array_equal(a, b, equal_nan=True)
-                                    for a, b in zip(jax.tree.leaves(fresh), jax.tree.leaves(states), strict=True))
+        row["init_identical"] = all(
+            np.array_equal(a, b, equal_nan=True)
+            for a, b in zip(jax.tree.leaves(fresh), jax.tree.leaves(states), strict=True)
+        )
         run_states = jax.device_put(jax.tree.map(np.array, states), sharding)
         run_states, rows = compiled["chunk"](configs_placed, run_states)  # the first period (replay warm-up)
         jax.block_until_ready(rows)

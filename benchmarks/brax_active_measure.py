@@ -45,9 +45,20 @@ EXPERIMENTS: dict[str, tuple[tuple[float, ...], int, int]] = {
     "brax:inverted_pendulum": ((0.1, 0.2, 0.3), 1_638_400, 40_960),
     "brax:reacher:spring": ((0.001, 0.003, 0.01), 1_024_000, 102_400),
 }
-TABLE_COLUMNS = ["env", "vanilla", "cost", "seeds", "best_return", "best_raw_return", "measured_fraction",
-                 "rescored_return", "rescored_raw_return", "rescored_measured_fraction", "always_measure",
-                 "gain_vs_always_measure"]
+TABLE_COLUMNS = [
+    "env",
+    "vanilla",
+    "cost",
+    "seeds",
+    "best_return",
+    "best_raw_return",
+    "measured_fraction",
+    "rescored_return",
+    "rescored_raw_return",
+    "rescored_measured_fraction",
+    "always_measure",
+    "gain_vs_always_measure",
+]
 SETTING = ["env", "vanilla", "cost"]
 
 
@@ -78,8 +89,14 @@ def main(argv: list[str] | None = None) -> int:
     for env_id in args.envs:
         costs, steps, eval_every = (EXPERIMENTS[env_id][0], 20_480, 10_240) if args.smoke else EXPERIMENTS[env_id]
         spec = SweepSpec(
-            envs=(env_id,), agents=("ppo",), costs=costs, seeds=tuple(range(seeds)), total_timesteps=steps,
-            eval_every=eval_every, eval_episodes=eval_episodes, vanilla=True,
+            envs=(env_id,),
+            agents=("ppo",),
+            costs=costs,
+            seeds=tuple(range(seeds)),
+            total_timesteps=steps,
+            eval_every=eval_every,
+            eval_episodes=eval_episodes,
+            vanilla=True,
             env_defaults={env_id: env_hyperparams(env_id, ("ppo",))},
         )
         out = Path(args.out) / folder_name(env_id)
@@ -91,8 +108,9 @@ def main(argv: list[str] | None = None) -> int:
         tables.append(results_table(result.summary, result.results))
 
     shown = format_paper_table(pd.concat(tables, ignore_index=True))
-    table = to_markdown(shown.rename(columns={"best_raw_return": "best raw return",
-                                              "rescored_raw_return": "re-scored raw return"}))
+    table = to_markdown(
+        shown.rename(columns={"best_raw_return": "best raw return", "rescored_raw_return": "re-scored raw return"})
+    )
     (Path(args.out) / "table.md").write_text(table + "\n")
     print(table)
     return 0

@@ -102,8 +102,16 @@ def measure(env_name: str, backend: str, batch: int, n_steps: int, repeats: int)
 
 def measure_ppo(env_name: str, backend: str, configs: int, steps: int, repeats: int) -> dict[str, float]:
     """PPO training env-steps/s (all configurations together, the fastest of `repeats` runs) and compile seconds."""
-    case = {"agent": "ppo", "env_id": f"brax:{env_name}:{backend}", "configs": configs, "steps": steps, "evals": 1,
-            "eval_episodes": 1, "vanilla": False, "target_chunks": 1}
+    case = {
+        "agent": "ppo",
+        "env_id": f"brax:{env_name}:{backend}",
+        "configs": configs,
+        "steps": steps,
+        "evals": 1,
+        "eval_episodes": 1,
+        "vanilla": False,
+        "target_chunks": 1,
+    }
     built = build_amjax(case)
     run_s = timed(built["run"], repeats)["run_s"]
     return {"ppo": configs * steps / run_s, "ppo_compile": built["compile_s"]}
@@ -115,8 +123,10 @@ def ppo_table(args: argparse.Namespace, info: dict[str, str], load_start: float)
         for backend in args.backends:
             row = measure_ppo(env_name, backend, args.ppo, args.ppo_steps, args.repeats)
             rows.append((env_name, backend, row))
-            print(f"{env_name} / {backend}: PPO {row['ppo']:,.0f} env-steps/s, compile {row['ppo_compile']:.1f} s",
-                  flush=True)
+            print(
+                f"{env_name} / {backend}: PPO {row['ppo']:,.0f} env-steps/s, compile {row['ppo_compile']:.1f} s",
+                flush=True,
+            )
     lines = [
         f"# brax through amjax: PPO training speed, {args.ppo} configurations x {args.ppo_steps:,} env steps, "
         f"{datetime.date.today()}",
@@ -158,8 +168,11 @@ def main() -> None:
                 row = None
             rows.append((env_name, backend, row))
             if row:
-                print(f"{env_name} / {backend}: {row['adapter']:,.0f} env-steps/s (brax's step alone "
-                      f"{row['brax']:,.0f}), compile {row['adapter_compile']:.1f} s", flush=True)
+                print(
+                    f"{env_name} / {backend}: {row['adapter']:,.0f} env-steps/s (brax's step alone "
+                    f"{row['brax']:,.0f}), compile {row['adapter_compile']:.1f} s",
+                    flush=True,
+                )
 
     lines = [
         f"# brax through amjax: speed at {args.batch} vmapped envs, {datetime.date.today()}",
@@ -176,8 +189,10 @@ def main() -> None:
         if row is None:
             lines.append(f"| {env_name} | {backend} | failed | - | - | - | - |")
             continue
-        lines.append(f"| {env_name} | {backend} | {row['adapter']:,.0f} | {row['adapter_compile']:.1f} "
-                     f"| {row['brax']:,.0f} | {row['brax_compile']:.1f} | {row['adapter'] / row['brax']:.2f} |")
+        lines.append(
+            f"| {env_name} | {backend} | {row['adapter']:,.0f} | {row['adapter_compile']:.1f} "
+            f"| {row['brax']:,.0f} | {row['brax_compile']:.1f} | {row['adapter'] / row['brax']:.2f} |"
+        )
     table = "\n".join(lines) + "\n"
     save_table(table, args.out, "brax_speed")
 

@@ -39,8 +39,14 @@ def run_child(steps: int, seeds: int, out: str, cluster: str | None) -> None:
     amjax.use_all_cores()
     from amjax.sweep import SweepSpec, run_sweep
 
-    spec = SweepSpec(envs=("CartPole-v0",), agents=("ppo", "dqn"), costs=COSTS, seeds=tuple(range(seeds)),
-                     total_timesteps=steps, eval_every=steps // 10)
+    spec = SweepSpec(
+        envs=("CartPole-v0",),
+        agents=("ppo", "dqn"),
+        costs=COSTS,
+        seeds=tuple(range(seeds)),
+        total_timesteps=steps,
+        eval_every=steps // 10,
+    )
     start = time.perf_counter()
     run_sweep(spec, out, progress=False, cluster=cluster)
     print(json.dumps({"seconds": time.perf_counter() - start}))
@@ -75,8 +81,17 @@ def worker_start(repeats: int) -> list[float]:
 
 def timed(args: argparse.Namespace, name: str, cluster: str | None) -> tuple[float, Path]:
     out = Path(args.out) / name
-    command = [sys.executable, __file__, "--child", "--steps", str(args.steps), "--seeds", str(args.seeds),
-               "--out", str(out)] + (["--cluster", cluster] if cluster else [])
+    command = [
+        sys.executable,
+        __file__,
+        "--child",
+        "--steps",
+        str(args.steps),
+        "--seeds",
+        str(args.seeds),
+        "--out",
+        str(out),
+    ] + (["--cluster", cluster] if cluster else [])
     child = subprocess.run(command, capture_output=True, text=True)
     if child.returncode != 0:
         raise SystemExit(f"{name}: the sweep failed (exit {child.returncode}):\n{child.stderr[-4000:]}")
@@ -90,8 +105,9 @@ def same_rows(a: Path, b: Path) -> bool:
     ra = pd.read_parquet(a / "results.parquet").sort_values(key).reset_index(drop=True)
     rb = pd.read_parquet(b / "results.parquet").sort_values(key).reset_index(drop=True)
     values = ["eval_return", "eval_measurements", "train_return", "loss"]
-    return ra[key].equals(rb[key]) and np.allclose(ra[values].to_numpy(float), rb[values].to_numpy(float),
-                                                  rtol=1e-5, equal_nan=True)
+    return ra[key].equals(rb[key]) and np.allclose(
+        ra[values].to_numpy(float), rb[values].to_numpy(float), rtol=1e-5, equal_nan=True
+    )
 
 
 def main() -> None:
@@ -133,9 +149,14 @@ def main() -> None:
         "|---|---|---|---|---|",
     ]
     for name, seconds, ran, same in rows:
-        where = "-" if ran is None else "; ".join(
-            f"{b.split('-')[0]}: {v['node']} pid {v['pid']}, {v['devices']} device(s), {v['seconds']} s"
-            for b, v in sorted(ran.items()))
+        where = (
+            "-"
+            if ran is None
+            else "; ".join(
+                f"{b.split('-')[0]}: {v['node']} pid {v['pid']}, {v['devices']} device(s), {v['seconds']} s"
+                for b, v in sorted(ran.items())
+            )
+        )
         lines.append(f"| {name} | {seconds:.1f} | {seconds / local_s:.2f}x | {'yes' if same else 'NO'} | {where} |")
     lines += [
         "",

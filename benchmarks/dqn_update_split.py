@@ -51,9 +51,14 @@ def main() -> None:
     parser.add_argument("--env", default="LunarLander-v3")
     parser.add_argument("--configs", type=int, default=20, help="configurations on this core")
     parser.add_argument("--updates", type=int, default=512, help="updates per timed call")
-    parser.add_argument("--layouts", nargs="*", default=[], metavar="ENVSxFREQ",
-                        help="also time the full update with these envs per configuration x steps per env between "
-                             "gradient steps (e.g. 1x4 4x1: the same 4 env steps per gradient step)")
+    parser.add_argument(
+        "--layouts",
+        nargs="*",
+        default=[],
+        metavar="ENVSxFREQ",
+        help="also time the full update with these envs per configuration x steps per env between "
+        "gradient steps (e.g. 1x4 4x1: the same 4 env steps per gradient step)",
+    )
     args = parser.parse_args()
     # The env-alone case returns a scalar, so its donated envs are not reused; nothing to warn about.
     warnings.filterwarnings("ignore", message="Some donated buffers were not usable")
@@ -75,8 +80,10 @@ def split(algo, args, configs, all_cases: bool) -> None:
     keys = jnp.stack([jax.random.PRNGKey(i) for i in range(len(configs))])
     state = jax.jit(jax.vmap(lambda c, k: algo.init(c, algo.setup(c), k)))(stacked, keys)
     # Past learning_starts, with a full buffer: the steady state of a long run.
-    state = state.replace(env_steps=state.env_steps + 10 * configs[0].learning_starts,
-                          buffer=state.buffer.replace(size=jnp.full_like(state.buffer.size, state.buffer.capacity)))
+    state = state.replace(
+        env_steps=state.env_steps + 10 * configs[0].learning_starts,
+        buffer=state.buffer.replace(size=jnp.full_like(state.buffer.size, state.buffer.capacity)),
+    )
     updates, per_update = args.updates, configs[0].steps_per_update()
 
     def full(config, state):
@@ -125,8 +132,10 @@ def split(algo, args, configs, all_cases: bool) -> None:
             "the env alone": seconds(jax.vmap(env_alone), stacked, state.envs, keys),
         }
     steps = len(configs) * updates * per_update
-    print(f"{args.env} Dueling DQN, {len(configs)} configurations on one core, {updates} updates of "
-          f"{configs[0].num_envs} envs x {configs[0].train_freq} steps each ({jax.devices()[0].device_kind})")
+    print(
+        f"{args.env} Dueling DQN, {len(configs)} configurations on one core, {updates} updates of "
+        f"{configs[0].num_envs} envs x {configs[0].train_freq} steps each ({jax.devices()[0].device_kind})"
+    )
     print(f"{'case':<32} {'ms / update':>12} {'share':>7} {'env-steps/s':>12}")
     for name, secs in cases.items():
         print(f"{name:<32} {secs / updates * 1e3:>12.3f} {secs / cases['full update']:>7.0%} {steps / secs:>12,.0f}")

@@ -57,9 +57,16 @@ def read_fractions(out: Path, summary: pd.DataFrame) -> pd.DataFrame:
         policy = load_sweep_policy(out, config_id)
         mmap = record_agent(policy.config, policy.params, jax.random.key(MAP_KEY), MAP_EPISODES)
         first, second = (1.0, 1.0) if policy.config.vanilla else mmap.reading_fractions
-        rows.append({"config_id": config_id, "read_first": first, "read_second": second,
-                     "fresh_return": float(np.mean(mmap.costed_return)),
-                     "fresh_measured": mmap.measured_fraction, "fresh_length": float(np.mean(mmap.lengths))})
+        rows.append(
+            {
+                "config_id": config_id,
+                "read_first": first,
+                "read_second": second,
+                "fresh_return": float(np.mean(mmap.costed_return)),
+                "fresh_measured": mmap.measured_fraction,
+                "fresh_length": float(np.mean(mmap.lengths)),
+            }
+        )
     return summary.merge(pd.DataFrame(rows), on="config_id")
 
 
@@ -80,8 +87,13 @@ def _cheaper_read_more(rows: pd.DataFrame) -> pd.Series:
 
 def table(rows: pd.DataFrame, names: tuple[str, str]) -> pd.DataFrame:
     """Medians over seeds per agent and prices, with the always-read bound of the vanilla runs."""
-    columns = {"best_return": "best costed reward", "best_policy_return": "re-scored",
-               "fresh_measured": "any read", "read_first": f"{names[0]} read", "read_second": f"{names[1]} read"}
+    columns = {
+        "best_return": "best costed reward",
+        "best_policy_return": "re-scored",
+        "fresh_measured": "any read",
+        "read_first": f"{names[0]} read",
+        "read_second": f"{names[1]} read",
+    }
     measured = rows[~rows.vanilla]
     measured = measured.assign(cheaper_more=_cheaper_read_more(measured))
     grouped = measured.groupby(["agent", "instrument_costs"], as_index=False)
@@ -89,9 +101,14 @@ def table(rows: pd.DataFrame, names: tuple[str, str]) -> pd.DataFrame:
     medians.insert(2, "seeds", grouped.size()["size"])
     counts = grouped["cheaper_more"].agg(lambda x: f"{int(x.sum())}/{len(x)}")
     medians.insert(2, "cheaper read more often", counts["cheaper_more"])
-    medians.insert(6, "always-read bound", [
-        always_read_bound(rows[rows.agent == agent], prices, float(measured.cost.iloc[0]))
-        for agent, prices in zip(medians.agent, medians.instrument_costs, strict=True)])
+    medians.insert(
+        6,
+        "always-read bound",
+        [
+            always_read_bound(rows[rows.agent == agent], prices, float(measured.cost.iloc[0]))
+            for agent, prices in zip(medians.agent, medians.instrument_costs, strict=True)
+        ],
+    )
     return medians.rename(columns={"instrument_costs": f"prices ({names[0]} x {names[1]})"})
 
 
@@ -109,8 +126,13 @@ def main() -> None:
     names = tuple(name for name, _ in DEFAULT_INSTRUMENTS[env_id])
     out = Path(args.out)
     spec = SweepSpec(
-        envs=(env_id,), agents=agents, costs=costs, seeds=tuple(range(seeds)), total_timesteps=steps,
-        eval_every=every, vanilla=True,
+        envs=(env_id,),
+        agents=agents,
+        costs=costs,
+        seeds=tuple(range(seeds)),
+        total_timesteps=steps,
+        eval_every=every,
+        vanilla=True,
         hyperparams={"instruments": "default", "instrument_costs": list(prices)},
         env_defaults={env_id: env_hyperparams(env_id, agents)},
     )
@@ -127,8 +149,11 @@ def main() -> None:
         median = group.iloc[(group["best_policy_return"] - group["best_policy_return"].median()).abs().argmin()]
         policy = load_sweep_policy(out, median["config_id"])
         mmap = record_agent(policy.config, policy.params, jax.random.key(MAP_KEY), 10)
-        plot_measurement_map({f"{agent}, prices {price}, seed {median['seed']}": mmap}, instrument_names=names,
-                             path=out / f"map_{agent}_{price}.png")
+        plot_measurement_map(
+            {f"{agent}, prices {price}, seed {median['seed']}": mmap},
+            instrument_names=names,
+            path=out / f"map_{agent}_{price}.png",
+        )
     print(f"sweep {trained:.0f} s, total {time.perf_counter() - start:.0f} s; table and maps in {out}")
 
 

@@ -90,7 +90,12 @@ def port_rollout(env: LunarLander, n_steps: int, policy: str = "random"):
 
 
 def port_rate(
-    env: LunarLander, n_envs: int, n_steps: int, devices: list, burn_in: int, policy: str = "random",
+    env: LunarLander,
+    n_envs: int,
+    n_steps: int,
+    devices: list,
+    burn_in: int,
+    policy: str = "random",
     compiler_options: dict[str, str] | None = None,
 ) -> dict[str, float]:
     """Env-steps/s, compile seconds and program memory of `n_envs` envs split over `devices`, timed over
@@ -215,16 +220,33 @@ def main() -> None:
     parser.add_argument("--gymnasium-steps", type=int, default=20_000)
     parser.add_argument("--single-env-steps", type=int, default=2_000)
     parser.add_argument("--burn-in", type=int, default=500, help="untimed steps before a timed port run")
-    parser.add_argument("--heuristic-envs", type=int, nargs="*", default=[1024],
-                        help="env counts also timed under Gymnasium's heuristic controller (long contact phases)")
-    parser.add_argument("--step-compiles", type=int, default=3,
-                        help="fresh compiles of one vmapped step at 1,024 envs to time (the issue's compile figure)")
-    parser.add_argument("--reductions-in-xla", action="store_true",
-                        help="also time every batch compiled with amjax.cores.REDUCTIONS_IN_XLA (opt-in option)")
+    parser.add_argument(
+        "--heuristic-envs",
+        type=int,
+        nargs="*",
+        default=[1024],
+        help="env counts also timed under Gymnasium's heuristic controller (long contact phases)",
+    )
+    parser.add_argument(
+        "--step-compiles",
+        type=int,
+        default=3,
+        help="fresh compiles of one vmapped step at 1,024 envs to time (the issue's compile figure)",
+    )
+    parser.add_argument(
+        "--reductions-in-xla",
+        action="store_true",
+        help="also time every batch compiled with amjax.cores.REDUCTIONS_IN_XLA (opt-in option)",
+    )
     parser.add_argument("--out", type=Path, default=None)
-    parser.add_argument("--solvers", nargs="+", choices=SOLVERS, default=list(SOLVERS),
-                        help="the port's settings to time: Box2D's sweeps everywhere (the default env), "
-                        "jump_sweeps=True and/or exact_free_flight=True")
+    parser.add_argument(
+        "--solvers",
+        nargs="+",
+        choices=SOLVERS,
+        default=list(SOLVERS),
+        help="the port's settings to time: Box2D's sweeps everywhere (the default env), "
+        "jump_sweeps=True and/or exact_free_flight=True",
+    )
     args = parser.parse_args()
 
     devices = jax.devices()
@@ -236,16 +258,22 @@ def main() -> None:
             singles[solver, path] = single_env_rate(env, args.single_env_steps, path)
             print(f"{solver}: one env, {path}: {singles[solver, path]:,.0f} steps/s", flush=True)
         step_compiles[solver] = [step_compile_seconds(env, 1024) for _ in range(args.step_compiles)]
-        print(f"{solver}: one vmapped step at 1,024 envs compiles in "
-              f"{', '.join(f'{t:.1f}' for t in step_compiles[solver])} s", flush=True)
+        print(
+            f"{solver}: one vmapped step at 1,024 envs compiles in "
+            f"{', '.join(f'{t:.1f}' for t in step_compiles[solver])} s",
+            flush=True,
+        )
         runs = [(n, "random") for n in args.envs] + [(n, "heuristic") for n in args.heuristic_envs]
         options = [None, REDUCTIONS_IN_XLA] if args.reductions_in_xla else [None]
         for (n, policy), compiler_options in itertools.product(runs, options):
             n_steps = int(np.clip(args.steps_per_run // n, 100, 2000))
             row = {**port_rate(env, n, n_steps, devices, args.burn_in, policy, compiler_options), "solver": solver}
             rows.append(row)
-            print(f"{solver}, {policy}, {n} envs{', REDUCTIONS_IN_XLA' if compiler_options else ''}: "
-                  f"{row['rate']:,.0f} env-steps/s, compile {row['compile_s']:.1f} s", flush=True)
+            print(
+                f"{solver}, {policy}, {n} envs{', REDUCTIONS_IN_XLA' if compiler_options else ''}: "
+                f"{row['rate']:,.0f} env-steps/s, compile {row['compile_s']:.1f} s",
+                flush=True,
+            )
 
     load = os.getloadavg()
     lines = [
@@ -263,8 +291,10 @@ def main() -> None:
         f"| Gymnasium LunarLander-v3 (C++ Box2D), Python loop | 1 | 1 core | {gym:,.0f} | 1.0x | - | - | - |",
     ]
     for (solver, path), single in singles.items():
-        lines.append(f"| port ({SOLVERS[solver]}), one env's step called from Python, {SINGLE_ENV_PATHS[path]} "
-                     f"| 1 | 1 | {single:,.0f} | {single / gym:.2f}x | - | - | - |")
+        lines.append(
+            f"| port ({SOLVERS[solver]}), one env's step called from Python, {SINGLE_ENV_PATHS[path]} "
+            f"| 1 | 1 | {single:,.0f} | {single / gym:.2f}x | - | - | - |"
+        )
     for r in rows:
         actions = "" if r["policy"] == "random" else ", Gymnasium's heuristic controller"
         actions += ", compiled with `amjax.cores.REDUCTIONS_IN_XLA`" if r["options"] else ""
@@ -274,8 +304,11 @@ def main() -> None:
             f"| {r['rate']:,.0f} | "
             f"{r['rate'] / gym:.1f}x | {r['compile_s']:.1f} | {r['program_mib']:.1f} | {r['rss_mib']:,.0f} |"
         )
-    lines += ["", "Compile of one vmapped `env.step` at 1,024 envs (`jax.jit(jax.vmap(env.step))` traced, lowered and "
-              "compiled, fresh each time; the compile column above is the whole scanned rollout under `shard_map`):"]
+    lines += [
+        "",
+        "Compile of one vmapped `env.step` at 1,024 envs (`jax.jit(jax.vmap(env.step))` traced, lowered and "
+        "compiled, fresh each time; the compile column above is the whole scanned rollout under `shard_map`):",
+    ]
     for solver, times in step_compiles.items():
         if times:
             lines.append(f"- {SOLVERS[solver]}: {', '.join(f'{t:.1f}' for t in times)} s")

@@ -69,12 +69,18 @@ def jax_heuristic(n_episodes: int, seed: int = 0, **solver: bool) -> dict[str, n
     @jax.jit
     def run(key: jax.Array):
         k_reset, k_run = jax.random.split(key)
-        obs, state = jax.vmap(env.reset_env, in_axes=(0, None))(
-            jax.random.split(k_reset, n_episodes), params
-        )
+        obs, state = jax.vmap(env.reset_env, in_axes=(0, None))(jax.random.split(k_reset, n_episodes), params)
         zeros = jnp.zeros(n_episodes)
-        carry = (obs, state, jnp.zeros(n_episodes, bool), zeros, zeros.astype(jnp.int32),
-                 jnp.zeros(n_episodes, jnp.int32), k_run, jnp.int32(0))
+        carry = (
+            obs,
+            state,
+            jnp.zeros(n_episodes, bool),
+            zeros,
+            zeros.astype(jnp.int32),
+            jnp.zeros(n_episodes, jnp.int32),
+            k_run,
+            jnp.int32(0),
+        )
 
         def cond(c):
             return (c[7] < MAX_STEPS) & ~jnp.all(c[2])
@@ -82,9 +88,7 @@ def jax_heuristic(n_episodes: int, seed: int = 0, **solver: bool) -> dict[str, n
         def body(c):
             obs, state, done, ret, length, kind, key, t = c
             key, sub = jax.random.split(key)
-            obs2, state2, reward, term, info = step(
-                jax.random.split(sub, n_episodes), state, policy(obs), params
-            )
+            obs2, state2, reward, term, info = step(jax.random.split(sub, n_episodes), state, policy(obs), params)
             trunc = state2.time >= MAX_STEPS
             active = ~done
             ret = ret + jnp.where(active, reward, 0.0)
@@ -110,18 +114,14 @@ def throughput(n_envs: int = 1024, n_steps: int = 100, **solver: bool) -> float:
     """Steps/s of env.step (gymnax auto-reset), vmapped over n_envs, random actions."""
     env = LunarLander(**solver)
     params = env.default_params
-    obs, state = jax.vmap(env.reset, in_axes=(0, None))(
-        jax.random.split(jax.random.PRNGKey(0), n_envs), params
-    )
+    obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(0), n_envs), params)
 
     @jax.jit
     def roll(state, key):
         def body(state, k):
             ks = jax.random.split(k, n_envs + 1)
             action = jax.random.randint(ks[0], (n_envs,), 0, 4)
-            _, state, reward, _, _, _ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                ks[1:], state, action, params
-            )
+            _, state, reward, _, _, _ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(ks[1:], state, action, params)
             return state, reward
 
         return jax.lax.scan(body, state, jax.random.split(key, n_steps))
@@ -151,10 +151,16 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=1000)
     parser.add_argument("--replay-seeds", type=int, default=200)
     parser.add_argument("--throughput-envs", type=int, default=1024)
-    parser.add_argument("--exact-free-flight", action="store_true",
-                        help="the port's LunarLander(exact_free_flight=True) instead of Box2D's sweeps everywhere")
-    parser.add_argument("--jump-sweeps", action="store_true",
-                        help="the port's LunarLander(jump_sweeps=True) instead of Box2D's sweeps everywhere")
+    parser.add_argument(
+        "--exact-free-flight",
+        action="store_true",
+        help="the port's LunarLander(exact_free_flight=True) instead of Box2D's sweeps everywhere",
+    )
+    parser.add_argument(
+        "--jump-sweeps",
+        action="store_true",
+        help="the port's LunarLander(jump_sweeps=True) instead of Box2D's sweeps everywhere",
+    )
     args = parser.parse_args()
     solver = {"exact_free_flight": args.exact_free_flight, "jump_sweeps": args.jump_sweeps}
 
@@ -162,9 +168,11 @@ def main() -> None:
         start = time.perf_counter()
         t2 = t2_replay(args.replay_seeds, **solver)
         print(f"## T2 free-flight replay ({time.perf_counter() - start:.0f} s)\n")
-        print(f"{t2['seeds']} seeds, {t2['steps']} steps compared before Gymnasium's first "
-              f"contact: max |obs diff| = {t2['max_obs_diff']:.2e}, "
-              f"max |reward diff| = {t2['max_reward_diff']:.2e}\n")
+        print(
+            f"{t2['seeds']} seeds, {t2['steps']} steps compared before Gymnasium's first "
+            f"contact: max |obs diff| = {t2['max_obs_diff']:.2e}, "
+            f"max |reward diff| = {t2['max_reward_diff']:.2e}\n"
+        )
 
     start = time.perf_counter()
     rows = [summary("Gymnasium (Box2D)", gymnasium_heuristic(args.episodes))]
@@ -176,21 +184,25 @@ def main() -> None:
     print("| env | episodes | mean return (± s.e.) | landed % | crashed % | timeout % | mean length |")
     print("|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['env']} | {r['episodes']} | {r['mean_return']:.1f} ± {r['stderr']:.1f} | "
-              f"{r['landed']:.1f} | {r['crashed']:.1f} | {r['timeout']:.1f} | "
-              f"{r['mean_length']:.0f} |")
+        print(
+            f"| {r['env']} | {r['episodes']} | {r['mean_return']:.1f} ± {r['stderr']:.1f} | "
+            f"{r['landed']:.1f} | {r['crashed']:.1f} | {r['timeout']:.1f} | "
+            f"{r['mean_length']:.0f} |"
+        )
     gym_row, jax_row = rows
     diffs = {k: jax_row[k] - gym_row[k] for k in ("mean_return", "landed", "crashed", "timeout")}
-    ok = abs(diffs["mean_return"]) <= 10 and all(
-        abs(diffs[k]) <= 5 for k in ("landed", "crashed", "timeout")
+    ok = abs(diffs["mean_return"]) <= 10 and all(abs(diffs[k]) <= 5 for k in ("landed", "crashed", "timeout"))
+    print(
+        f"\ndifferences (JAX - Gymnasium): return {diffs['mean_return']:+.1f}, landed "
+        f"{diffs['landed']:+.1f} pp, crashed {diffs['crashed']:+.1f} pp, timeout "
+        f"{diffs['timeout']:+.1f} pp -> {'PASS' if ok else 'FAIL'} (targets ±10, ±5 pp)\n"
     )
-    print(f"\ndifferences (JAX - Gymnasium): return {diffs['mean_return']:+.1f}, landed "
-          f"{diffs['landed']:+.1f} pp, crashed {diffs['crashed']:+.1f} pp, timeout "
-          f"{diffs['timeout']:+.1f} pp -> {'PASS' if ok else 'FAIL'} (targets ±10, ±5 pp)\n")
 
     sps = throughput(args.throughput_envs, **solver)
-    print(f"## Throughput\n\nenv.step with auto-reset, vmapped over {args.throughput_envs} envs, "
-          f"{jax.devices()[0].platform}: {sps:,.0f} steps/s")
+    print(
+        f"## Throughput\n\nenv.step with auto-reset, vmapped over {args.throughput_envs} envs, "
+        f"{jax.devices()[0].platform}: {sps:,.0f} steps/s"
+    )
 
 
 if __name__ == "__main__":

@@ -54,9 +54,13 @@ def sample_efficiency(results: pd.DataFrame) -> pd.DataFrame:
 
 def head_table(summary: pd.DataFrame, results: pd.DataFrame) -> pd.DataFrame:
     rows = summary.merge(sample_efficiency(results), on="config_id")
-    columns = {"best_return": "best costed reward", "best_policy_return": "re-scored",
-               "best_policy_measured_fraction": "measured", "mean_eval_return": "mean eval reward",
-               "steps_to_90": "steps to 90% of best"}
+    columns = {
+        "best_return": "best costed reward",
+        "best_policy_return": "re-scored",
+        "best_policy_measured_fraction": "measured",
+        "mean_eval_return": "mean eval reward",
+        "steps_to_90": "steps to 90% of best",
+    }
     grouped = rows.groupby(SETTING, as_index=False)
     table = grouped[list(columns)].median().rename(columns=columns)
     table.insert(4, "seeds", grouped.size()["size"])
@@ -77,9 +81,16 @@ def main() -> None:
         seeds = args.seeds
         if args.smoke:
             seeds, steps, every = 2, 4096, 2048
-        spec = SweepSpec(envs=(env,), agents=AGENTS, costs=COSTS, seeds=tuple(range(seeds)), total_timesteps=steps,
-                         eval_every=every, hyperparams={"measure_head": ["joint", "factored"]},
-                         env_defaults={env: env_hyperparams(env, AGENTS)})
+        spec = SweepSpec(
+            envs=(env,),
+            agents=AGENTS,
+            costs=COSTS,
+            seeds=tuple(range(seeds)),
+            total_timesteps=steps,
+            eval_every=every,
+            hyperparams={"measure_head": ["joint", "factored"]},
+            env_defaults={env: env_hyperparams(env, AGENTS)},
+        )
         out = Path(args.out) / env
         start = time.perf_counter()
         run_sweep(spec, out, progress=True)

@@ -70,8 +70,9 @@ def probe_batch(batch: Batch, budget: int, probe_steps: int, devices: list) -> d
     # The evaluation alone (the same greedy test episodes the period ended with), so that training is projected at
     # its own rate and evaluation at the replicate's count of evaluations, not at the probe's much higher ratio.
     sharding = config_sharding(devices)
-    evaluation = sharded_jit(jax.vmap(partial(_evaluation, batch.algo)), devices,
-                             in_shardings=sharding, out_shardings=sharding)
+    evaluation = sharded_jit(
+        jax.vmap(partial(_evaluation, batch.algo)), devices, in_shardings=sharding, out_shardings=sharding
+    )
     jax.block_until_ready(evaluation(stacked, states))
     start = time.perf_counter()
     lengths = jax.block_until_ready(evaluation(stacked, states))
@@ -79,9 +80,15 @@ def probe_batch(batch: Batch, budget: int, probe_steps: int, devices: list) -> d
     rate = len(batch.runs) * period / max(period_s - eval_s, 1e-9)  # padding configurations count as overhead
     steps = len(batch.runs) * budget
     evals = budget // batch.runs[0].config.eval_every
-    return {"configs": len(batch.runs), "compile_s": compile_s, "steps_per_s": rate, "steps": steps,
-            "eval_s": eval_s, "eval_length": float(np.mean(np.asarray(lengths)[: len(batch.runs)])),
-            "projected_s": compile_s + steps / rate + evals * eval_s}
+    return {
+        "configs": len(batch.runs),
+        "compile_s": compile_s,
+        "steps_per_s": rate,
+        "steps": steps,
+        "eval_s": eval_s,
+        "eval_length": float(np.mean(np.asarray(lengths)[: len(batch.runs)])),
+        "projected_s": compile_s + steps / rate + evals * eval_s,
+    }
 
 
 def _evaluation(algo, config, state):
@@ -93,8 +100,10 @@ def _evaluation(algo, config, state):
 def probe(env: str, agent: str, seeds: int, probe_steps: int, devices: list) -> list[dict[str, float]]:
     """`probe_batch` for every batch (active-measure, vanilla) the replicate command trains for (env, agent)."""
     spec = replicate_specs((env,), (agent,), seeds)[env]
-    return [probe_batch(batch, spec.total_timesteps, probe_steps, devices)
-            for batch in plan_batches(expand(spec), 1024, len(devices))]
+    return [
+        probe_batch(batch, spec.total_timesteps, probe_steps, devices)
+        for batch in plan_batches(expand(spec), 1024, len(devices))
+    ]
 
 
 def main() -> None:
@@ -113,16 +122,20 @@ def main() -> None:
     if unknown:
         parser.error(f"--env: {', '.join(unknown)}; allowed values: {', '.join(REPLICATE_BUDGETS)}")
     print(f"{len(devices)} CPU devices; probe: 2 periods of about {args.probe_steps:,} steps per config")
-    print(f"{'env':<16}{'agent':<7}{'configs':>8}{'compile s':>11}{'train steps/s':>15}{'eval s':>8}"
-          f"{'eval len':>9}{'env steps':>14}{'projected':>11}")
+    print(
+        f"{'env':<16}{'agent':<7}{'configs':>8}{'compile s':>11}{'train steps/s':>15}{'eval s':>8}"
+        f"{'eval len':>9}{'env steps':>14}{'projected':>11}"
+    )
     total = 0.0
     for env in args.env:
         for agent in args.agent:
             for r in probe(env, agent, args.seeds, args.probe_steps, devices):
                 total += r["projected_s"]
-                print(f"{env:<16}{agent:<7}{r['configs']:>8}{r['compile_s']:>11.1f}{r['steps_per_s'] / 1e3:>14.1f}k"
-                      f"{r['eval_s']:>8.2f}{r['eval_length']:>9.0f}{r['steps']:>14,}{r['projected_s'] / 60:>9.1f} m",
-                      flush=True)
+                print(
+                    f"{env:<16}{agent:<7}{r['configs']:>8}{r['compile_s']:>11.1f}{r['steps_per_s'] / 1e3:>14.1f}k"
+                    f"{r['eval_s']:>8.2f}{r['eval_length']:>9.0f}{r['steps']:>14,}{r['projected_s'] / 60:>9.1f} m",
+                    flush=True,
+                )
     print(f"projected total: {total / 3600:.2f} h (training and compilation; reports add about a minute per env)")
 
 

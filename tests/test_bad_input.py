@@ -17,9 +17,27 @@ from amjax.sweep import SweepMismatchError, SweepSpec, SweepTooLargeError, expan
 from amjax.sweep.storage import UnreadableFileError
 from train.cli import main
 
-TINY_FLAGS = ["--agent", "ppo", "--cost", "0.1", "--seeds", "1", "--steps", "2048", "--eval-every", "1024",
-              "--eval-episodes", "2", "--set", "num_envs=4", "--set", "num_steps=32", "--set", "rescore_episodes=2",
-              "--no-progress"]
+TINY_FLAGS = [
+    "--agent",
+    "ppo",
+    "--cost",
+    "0.1",
+    "--seeds",
+    "1",
+    "--steps",
+    "2048",
+    "--eval-every",
+    "1024",
+    "--eval-episodes",
+    "2",
+    "--set",
+    "num_envs=4",
+    "--set",
+    "num_steps=32",
+    "--set",
+    "rescore_episodes=2",
+    "--no-progress",
+]
 
 # (flags after `sweep --agent ppo`, a piece of the message): values a user can mistype.
 SWEEP_CASES = [
@@ -129,15 +147,19 @@ COMMAND_CASES = [
     ("pareto", ["--specialist-costs", "-0.1"], "--specialist-costs: got -0.1"),
     ("pareto", ["--steps", "0"], "--steps: got 0"),
     ("pareto", ["--agent", "sarsa"], "sarsa"),
-    ("pareto", ["--cost-high", "0.2", "--specialist-costs", "0.1", "0.3"],
-     "--specialist-costs: got 0.3, above --cost-high 0.2"),
+    (
+        "pareto",
+        ["--cost-high", "0.2", "--specialist-costs", "0.1", "0.3"],
+        "--specialist-costs: got 0.3, above --cost-high 0.2",
+    ),
     ("pareto", ["--seeds", "2", "--seed-list", "3", "4"], "--seeds and --seed-list: give one of them"),
     ("pareto", ["--seed-list", "-1"], "seed: got -1"),
 ]
 
 
-@pytest.mark.parametrize(("command", "flags", "message"), COMMAND_CASES,
-                         ids=[f"{c[0]} {' '.join(c[1])}" for c in COMMAND_CASES])
+@pytest.mark.parametrize(
+    ("command", "flags", "message"), COMMAND_CASES, ids=[f"{c[0]} {' '.join(c[1])}" for c in COMMAND_CASES]
+)
 def test_replicate_and_pareto_flag_corpus(tmp_path, capsys, command, flags, message):
     code, err = _run([command, "--out", str(tmp_path / "never"), *flags], capsys)
     assert code == 2 and message in err and "Traceback" not in err, err
@@ -210,8 +232,14 @@ def test_python_api_errors_name_the_argument():
 
 
 def test_a_batch_too_large_for_memory_is_refused_before_writing(tmp_path):
-    spec = SweepSpec(agents=("dqn",), costs=(0.1,), seeds=(0, 1), total_timesteps=4096, eval_every=1024,
-                     hyperparams={"buffer_size": 4_000_000_000})
+    spec = SweepSpec(
+        agents=("dqn",),
+        costs=(0.1,),
+        seeds=(0, 1),
+        total_timesteps=4096,
+        eval_every=1024,
+        hyperparams={"buffer_size": 4_000_000_000},
+    )
     with pytest.raises(SweepTooLargeError, match="GiB .* lower --max-batch"):
         run_sweep(spec, tmp_path / "never", progress=False)
     assert not (tmp_path / "never").exists()
@@ -228,18 +256,25 @@ MEASURE_SETUP_CASES = [
     ({"mode": "random", "noise_std": 0.1}, {"mode": "random", "noise_std": 0.1}, "noise_std: only used"),
     ({"mode": "noisy", "noise_std": 0.0}, {"mode": "noisy"}, "noise_std: mode 'noisy' needs noise_std"),
     ({"mode": "noisy"}, {"mode": "noisy", "noise_std": 0.0}, "noise_std: mode 'noisy' needs noise_std"),
-    ({"vanilla": True, "mode": "noisy", "noise_std": 0.1}, {"vanilla": True, "mode": "noisy", "noise_std": 0.1},
-     "vanilla: a vanilla run"),
+    (
+        {"vanilla": True, "mode": "noisy", "noise_std": 0.1},
+        {"vanilla": True, "mode": "noisy", "noise_std": 0.1},
+        "vanilla: a vanilla run",
+    ),
     ({"vanilla": True, "mode": "random"}, {"vanilla": True, "mode": "random"}, "vanilla: a vanilla run"),
-    ({"vanilla": True, "reward_timing": "on_measure"}, {"vanilla": True, "reward_timing": "on_measure"},
-     "vanilla: a vanilla run"),
+    (
+        {"vanilla": True, "reward_timing": "on_measure"},
+        {"vanilla": True, "reward_timing": "on_measure"},
+        "vanilla: a vanilla run",
+    ),
     ({"budget": 2.5}, {"budgeted": True, "budget": 2.5}, "budget: got 2.5; allowed values: whole numbers"),
     ({"budget": [1.0, 0.5]}, {"budgeted": True, "budget": 0.5}, "budget: got"),
 ]
 
 
-@pytest.mark.parametrize(("make_kwargs", "fields", "message"), MEASURE_SETUP_CASES,
-                         ids=[str(c[1]) for c in MEASURE_SETUP_CASES])
+@pytest.mark.parametrize(
+    ("make_kwargs", "fields", "message"), MEASURE_SETUP_CASES, ids=[str(c[1]) for c in MEASURE_SETUP_CASES]
+)
 def test_make_and_agent_configs_refuse_the_same_measure_setups(make_kwargs, fields, message):
     """`amjax.make` and every agent config (hence every sweep) refuse the same settings, before compiling."""
     with pytest.raises(ValueError) as from_make:
@@ -255,11 +290,13 @@ def test_make_and_agent_configs_refuse_the_same_measure_setups(make_kwargs, fiel
 
 def test_the_measure_setups_both_entry_points_accept():
     """What the shared check lets through: a config's noise_std 0 is "unset" (make's None), integral budgets."""
-    for make_kwargs, fields in (({"mode": "noisy", "noise_std": 0.1}, {"mode": "noisy", "noise_std": 0.1}),
-                                ({"mode": "last"}, {"mode": "last", "noise_std": 0.0}),
-                                ({"mode": "random"}, {"mode": "random"}),
-                                ({"budget": 3.0}, {"budgeted": True, "budget": 3.0}),
-                                ({"vanilla": True}, {"vanilla": True})):
+    for make_kwargs, fields in (
+        ({"mode": "noisy", "noise_std": 0.1}, {"mode": "noisy", "noise_std": 0.1}),
+        ({"mode": "last"}, {"mode": "last", "noise_std": 0.0}),
+        ({"mode": "random"}, {"mode": "random"}),
+        ({"budget": 3.0}, {"budgeted": True, "budget": 3.0}),
+        ({"vanilla": True}, {"vanilla": True}),
+    ):
         amjax.make("CartPole-v0", **make_kwargs)
         for config_type in (PPOConfig, DQNConfig, DRQNConfig, PPORNNConfig):
             config_type(**SCHEDULE, **fields).validate()

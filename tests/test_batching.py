@@ -49,8 +49,11 @@ def branched(pred, x, y):
     return jax.vmap(jax.vmap(lambda p, a, b: uniform_cond(p, expensive, cheap, a, b)))(pred, x, y)
 
 
-@pytest.mark.parametrize(("program", "size"), [(compacted, 32), (compacted_small_batch, 8)],
-                         ids=["32 members in chunks of 2", "8 members within one chunk"])
+@pytest.mark.parametrize(
+    ("program", "size"),
+    [(compacted, 32), (compacted_small_batch, 8)],
+    ids=["32 members in chunks of 2", "8 members within one chunk"],
+)
 @settings(max_examples=30, deadline=None)
 @given(data=st.data(), seed=st.integers(0, 2**31 - 1))
 def test_select_compacted_equals_a_select(program, size, data, seed):
@@ -92,8 +95,12 @@ def test_select_compacted_runs_expensive_once_on_a_smaller_batch():
 
 @pytest.mark.parametrize(
     ("kwargs", "message"),
-    [({"capacity": 0.0}, "capacity must be in"), ({"capacity": 1.5}, "capacity must be in"),
-     ({"min_chunk": 0}, "min_chunk must be an int"), ({"min_chunk": 2.0}, "min_chunk must be an int")],
+    [
+        ({"capacity": 0.0}, "capacity must be in"),
+        ({"capacity": 1.5}, "capacity must be in"),
+        ({"min_chunk": 0}, "min_chunk must be an int"),
+        ({"min_chunk": 2.0}, "min_chunk must be an int"),
+    ],
 )
 def test_select_compacted_rejects_bad_chunk_settings(kwargs, message):
     with pytest.raises(ValueError, match=message):

@@ -40,9 +40,23 @@ def test_overhead_figures():
 
 def test_overhead_cases_are_training_only():
     args = argparse.Namespace(
-        quick=False, steps=None, evals=5, eval_episodes=10, no_reference_eval=False, target_chunks=10,
-        sb3_threads=1, repeats=2, cores=None, agents=["ppo", "dqn"], sizes=[], impls=[], sb3=False,
-        overhead=[256], overhead_rounds=6, buffer=None, buffer_scan=[],
+        quick=False,
+        steps=None,
+        evals=5,
+        eval_episodes=10,
+        no_reference_eval=False,
+        target_chunks=10,
+        sb3_threads=1,
+        repeats=2,
+        cores=None,
+        agents=["ppo", "dqn"],
+        sizes=[],
+        impls=[],
+        sb3=False,
+        overhead=[256],
+        overhead_rounds=6,
+        buffer=None,
+        buffer_scan=[],
     )
     built = cases.build_cases(args)
     expected = [("overhead", "ppo", 256), ("overhead", "dqn", 256)]

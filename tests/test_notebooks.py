@@ -28,7 +28,11 @@ TINY_BUDGET = {"TOTAL_TIMESTEPS": 2048, "EVAL_EVERY": 1024, "EVAL_EPISODES": 2}
 PARAMETERS: dict[str, dict[str, Any]] = {
     "quickstart.ipynb": {**TINY_BUDGET, "COSTS": (0.0, 0.2), "SEEDS": (0, 1), "PPO_STATIC": TINY_PPO},
     "env_library.ipynb": {
-        "NUM_COSTS": 16, "NUM_KEYS": 2, "TRAIN_TIMESTEPS": 2048, "EVAL_EVERY": 1024, "PPO_STATIC": TINY_PPO,
+        "NUM_COSTS": 16,
+        "NUM_KEYS": 2,
+        "TRAIN_TIMESTEPS": 2048,
+        "EVAL_EVERY": 1024,
+        "PPO_STATIC": TINY_PPO,
     },
     "paper_replication.ipynb": {
         **TINY_BUDGET,
@@ -101,6 +105,8 @@ def test_notebook_runs(name, tmp_path, compilation_cache, monkeypatch):
     client.execute()  # raises CellExecutionError, with the failing cell and traceback, on any error
     images = sum(
         "image/png" in output.get("data", {})
-        for cell in notebook.cells if cell.cell_type == "code" for output in cell.outputs
+        for cell in notebook.cells
+        if cell.cell_type == "code"
+        for output in cell.outputs
     )
     assert images >= 2, f"{name}: expected figures in the outputs, found {images}"

@@ -39,7 +39,8 @@ def test_console_command_names_itself(capsys):
 
 
 def test_module_entry_point_still_works(tmp_path):
-    done = subprocess.run([sys.executable, "-m", "train", "presets"], capture_output=True, text=True, cwd=tmp_path,
-                          timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "train", "presets"], capture_output=True, text=True, cwd=tmp_path, timeout=120
+    )
     assert done.returncode == 0, done.stderr
     assert "demo:" in done.stdout

@@ -17,9 +17,11 @@ from train.cli import describe_devices, main
 
 README = Path(__file__).parents[1] / "README.md"
 START, END = "<!-- demo-table:start -->", "<!-- demo-table:end -->"
-NOTE = ("Printed by `amjax demo` on {devices}. Another CPU model or device count rounds floats differently and "
-        "training amplifies it, so there the same command prints other numbers. `tests/test_readme_demo.py` runs the "
-        "demo and checks this table in CI.")
+NOTE = (
+    "Printed by `amjax demo` on {devices}. Another CPU model or device count rounds floats differently and "
+    "training amplifies it, so there the same command prints other numbers. `tests/test_readme_demo.py` runs the "
+    "demo and checks this table in CI."
+)
 
 
 def printed_table(stdout: str) -> str:
@@ -35,11 +37,14 @@ def readme_block(table: str, devices: str) -> str:
 
 
 def test_printed_table_is_found_in_the_demo_output():
-    stdout = ("python -m train: 2 CPU devices (X)\n\nMedian [interquartile range] ...\n"
-              "        env agent cost  seeds  best costed reward\nCartPole-v0   dqn    0      3  200.00\n\n"
-              "Results: runs/demo/results.parquet\n")
-    assert printed_table(stdout) == ("        env agent cost  seeds  best costed reward\n"
-                                     "CartPole-v0   dqn    0      3  200.00")
+    stdout = (
+        "python -m train: 2 CPU devices (X)\n\nMedian [interquartile range] ...\n"
+        "        env agent cost  seeds  best costed reward\nCartPole-v0   dqn    0      3  200.00\n\n"
+        "Results: runs/demo/results.parquet\n"
+    )
+    assert printed_table(stdout) == (
+        "        env agent cost  seeds  best costed reward\nCartPole-v0   dqn    0      3  200.00"
+    )
 
 
 @pytest.mark.slow
@@ -58,4 +63,5 @@ def test_readme_shows_what_the_demo_prints(tmp_path, capsys):
     assert shown == block, (
         "README.md's demo table is not what `amjax demo` printed here (above: this run's). If results changed on "
         "purpose, or this is another CPU model or device count than the README names, rewrite it: "
-        "AMJAX_UPDATE_README=1 python -m pytest tests/test_readme_demo.py\n" + block)
+        "AMJAX_UPDATE_README=1 python -m pytest tests/test_readme_demo.py\n" + block
+    )

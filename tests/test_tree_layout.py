@@ -11,8 +11,18 @@ from hypothesis import strategies as st
 
 from amjax.cores import TreeLayout
 
-DTYPES = [jnp.float32, jnp.int32, jnp.uint32, jnp.bool_, jnp.int8, jnp.uint8, jnp.int16, jnp.uint16, jnp.float16,
-          jnp.bfloat16]
+DTYPES = [
+    jnp.float32,
+    jnp.int32,
+    jnp.uint32,
+    jnp.bool_,
+    jnp.int8,
+    jnp.uint8,
+    jnp.int16,
+    jnp.uint16,
+    jnp.float16,
+    jnp.bfloat16,
+]
 
 
 def bits(x: jax.Array) -> np.ndarray:
@@ -39,8 +49,9 @@ def leaves(draw: st.DrawFn) -> jax.Array:
 def trees(draw: st.DrawFn) -> dict:
     tree = {f"leaf{i}": leaf for i, leaf in enumerate(draw(st.lists(leaves(), max_size=5)))}
     if draw(st.booleans()):
-        tree["key"] = jax.random.key(draw(st.integers(0, 2**32 - 1)), impl=draw(st.sampled_from(["threefry2x32",
-                                                                                              "rbg"])))
+        tree["key"] = jax.random.key(
+            draw(st.integers(0, 2**32 - 1)), impl=draw(st.sampled_from(["threefry2x32", "rbg"]))
+        )
     return tree
 
 

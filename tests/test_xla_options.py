@@ -80,7 +80,7 @@ def test_jit_one_kernel_compiles_a_lunar_lander_step_as_one_kernel_with_jits_res
     key = jax.random.key(3)
     _, state = jax.jit(env.reset)(key, params)
     text = one.lower(key, state, np.int32(0)).compile().as_text()
-    entry = text[text.index("ENTRY"):]
+    entry = text[text.index("ENTRY") :]
     assert entry.count('xla_cpu_small_call="true"') == 1
     for action in np.random.default_rng(0).integers(0, 4, 60).astype(np.int32):
         want, got = plain(key, state, action), one(key, state, action)

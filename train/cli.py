@@ -111,15 +111,28 @@ def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
     sweep.add_argument("--steps", type=int, metavar="N", help="env steps per configuration")
     sweep.add_argument("--eval-every", type=int, metavar="N", help="env steps between greedy evaluations")
     sweep.add_argument("--eval-episodes", type=int, metavar="N", help="test episodes per evaluation")
-    sweep.add_argument("--vanilla", action=argparse.BooleanOptionalAction, default=None,
-                       help="also train on the plain env (always measured, no cost)")
+    sweep.add_argument(
+        "--vanilla",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="also train on the plain env (always measured, no cost)",
+    )
     sweep.add_argument("--mode", choices=("last", "random", "noisy"), help="what an unmeasured step shows")
-    sweep.add_argument("--set", action="append", default=[], metavar="NAME=V[,V...]",
-                       help="a hyperparameter value or list of values, e.g. learning_rate=1e-3,3e-4 or ppo.num_envs=16 "
-                       "(traced fields are vmapped; static ones such as hidden=(128,128) compile separately)")
-    sweep.add_argument("--env-defaults", action=argparse.BooleanOptionalAction, default=True,
-                       help="start each env from its tuned hyperparameters (amjax.presets: "
-                       f"{', '.join(ENV_PRESETS)}); --set values override them")
+    sweep.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=V[,V...]",
+        help="a hyperparameter value or list of values, e.g. learning_rate=1e-3,3e-4 or ppo.num_envs=16 "
+        "(traced fields are vmapped; static ones such as hidden=(128,128) compile separately)",
+    )
+    sweep.add_argument(
+        "--env-defaults",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="start each env from its tuned hyperparameters (amjax.presets: "
+        f"{', '.join(ENV_PRESETS)}); --set values override them",
+    )
     sweep.add_argument("--out", required=True, help="output folder (rerun with the same folder to resume)")
     sweep.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
     sweep.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -155,8 +168,13 @@ def spec_from_args(args: argparse.Namespace) -> SweepSpec:
         changes["seeds"] = tuple(range(args.seeds))
     if args.seed_list:
         changes["seeds"] = tuple(args.seed_list)
-    for flag, name in (("steps", "total_timesteps"), ("eval_every", "eval_every"),
-                       ("eval_episodes", "eval_episodes"), ("vanilla", "vanilla"), ("mode", "mode")):
+    for flag, name in (
+        ("steps", "total_timesteps"),
+        ("eval_every", "eval_every"),
+        ("eval_episodes", "eval_episodes"),
+        ("vanilla", "vanilla"),
+        ("mode", "mode"),
+    ):
         if getattr(args, flag) is not None:
             changes[name] = getattr(args, flag)
     if args.set:
@@ -180,11 +198,16 @@ def describe_presets(spec: SweepSpec) -> list[str]:
     for env, values in spec.resolved_env_defaults().items():
         for agent in spec.agents:
             fields = ALGORITHMS[agent].config_type.__dataclass_fields__
-            mine = {k.removeprefix(f"{agent}."): v for k, v in values.items()
-                    if k.startswith(f"{agent}.") or ("." not in k and k in fields)}
+            mine = {
+                k.removeprefix(f"{agent}."): v
+                for k, v in values.items()
+                if k.startswith(f"{agent}.") or ("." not in k and k in fields)
+            }
             if mine:
-                lines.append(f"{env} {agent} starts from its presets (amjax.presets; --no-env-defaults: none, --set "
-                             "overrides one): " + ", ".join(f"{k}={_value_text(v)}" for k, v in mine.items()))
+                lines.append(
+                    f"{env} {agent} starts from its presets (amjax.presets; --no-env-defaults: none, --set "
+                    "overrides one): " + ", ".join(f"{k}={_value_text(v)}" for k, v in mine.items())
+                )
     return lines
 
 
@@ -220,21 +243,43 @@ def format_table(table: pd.DataFrame) -> str:
     ]
     shown["re-scored"] = [
         f"{m:7.2f} [{a:.2f}, {b:.2f}]"
-        for m, a, b in zip(shown.best_policy_return_median, shown.best_policy_return_q25,
-                           shown.best_policy_return_q75, strict=True)
+        for m, a, b in zip(
+            shown.best_policy_return_median, shown.best_policy_return_q25, shown.best_policy_return_q75, strict=True
+        )
     ]
     shown["re-scored measured"] = [f"{m:.3f}" for m in shown.best_policy_measured_fraction_median]
     extra = [c for c in table.columns if c not in _SEED_TABLE_COLUMNS]
-    columns = ["env", "agent", "cost", *extra, "seeds", "diverged", "best costed reward", "measured fraction",
-               "re-scored", "re-scored measured"]
+    columns = [
+        "env",
+        "agent",
+        "cost",
+        *extra,
+        "seeds",
+        "diverged",
+        "best costed reward",
+        "measured fraction",
+        "re-scored",
+        "re-scored measured",
+    ]
     return shown[columns].to_string(index=False)
 
 
 _SEED_TABLE_COLUMNS = {
-    "env", "agent", "vanilla", "cost", "seeds", "diverged",
-    "best_return_median", "best_return_q25", "best_return_q75",
-    "measured_fraction_median", "measured_fraction_q25", "measured_fraction_q75",
-    "best_policy_return_median", "best_policy_return_q25", "best_policy_return_q75",
+    "env",
+    "agent",
+    "vanilla",
+    "cost",
+    "seeds",
+    "diverged",
+    "best_return_median",
+    "best_return_q25",
+    "best_return_q75",
+    "measured_fraction_median",
+    "measured_fraction_q25",
+    "measured_fraction_q75",
+    "best_policy_return_median",
+    "best_policy_return_q25",
+    "best_policy_return_q75",
     "best_policy_measured_fraction_median",
 }
 
@@ -292,25 +337,34 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         print(f"{parser.prog}: {line}")
     print(f"{parser.prog}: {describe_devices()}")
     try:
-        result = run_sweep(spec, args.out, max_batch=max_batch, progress=not args.no_progress, loggers=loggers,
-                           metadata=metadata, cluster=cluster, cluster_parameters=cluster_parameters)
+        result = run_sweep(
+            spec,
+            args.out,
+            max_batch=max_batch,
+            progress=not args.no_progress,
+            loggers=loggers,
+            metadata=metadata,
+            cluster=cluster,
+            cluster_parameters=cluster_parameters,
+        )
     except (SweepMismatchError, FolderBusyError, SweepTooLargeError, UnreadableFileError, ClusterError) as error:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)
         return 2
     except jax.errors.JaxRuntimeError as error:  # what the memory check cannot foresee (evaluation batches, XLA)
         if "RESOURCE_EXHAUSTED" not in str(error):
             raise
-        print(f"{parser.prog}: error: out of memory ({str(error).splitlines()[0][:200]}); results so far are kept "
-              f"in {args.out}: lower --max-batch or the sizes (num_envs, buffer_size, --eval-episodes)",
-              file=sys.stderr)
+        print(
+            f"{parser.prog}: error: out of memory ({str(error).splitlines()[0][:200]}); results so far are kept "
+            f"in {args.out}: lower --max-batch or the sizes (num_envs, buffer_size, --eval-episodes)",
+            file=sys.stderr,
+        )
         return 2
     print()
     print("Median [interquartile range] over seeds of the best greedy test costed reward (the paper's metric, biased")
     print("upward: the best of many noisy evaluations) and the measured fraction of steps at that evaluation; then")
     print("the same best policies re-scored on fresh test episodes (100 by default) and their measured fraction:")
     print(format_table(result.table))
-    print(f"\nResults: {result.out}/results.parquet (.csv), summary.parquet (.csv), seed_summary.csv, "
-          "metadata.json")
+    print(f"\nResults: {result.out}/results.parquet (.csv), summary.parquet (.csv), seed_summary.csv, metadata.json")
     return 0
 
 

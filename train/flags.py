@@ -15,12 +15,20 @@ from amjax.sweep.loggers import TensorBoardLogger, WandbLogger
 
 def add_logging_arguments(parser: argparse.ArgumentParser) -> None:
     """--tensorboard / --wandb flags (optional per-configuration logging; local files are always written)."""
-    parser.add_argument("--tensorboard", action="store_true",
-                        help="also log every configuration to TensorBoard (OUT/tensorboard/<config_id>)")
-    parser.add_argument("--wandb", metavar="PROJECT",
-                        help="also log every configuration to Weights & Biases project PROJECT")
-    parser.add_argument("--wandb-mode", choices=("offline", "online"), default="offline",
-                        help="offline needs no network (upload later with `wandb sync OUT/wandb/offline-run-*`)")
+    parser.add_argument(
+        "--tensorboard",
+        action="store_true",
+        help="also log every configuration to TensorBoard (OUT/tensorboard/<config_id>)",
+    )
+    parser.add_argument(
+        "--wandb", metavar="PROJECT", help="also log every configuration to Weights & Biases project PROJECT"
+    )
+    parser.add_argument(
+        "--wandb-mode",
+        choices=("offline", "online"),
+        default="offline",
+        help="offline needs no network (upload later with `wandb sync OUT/wandb/offline-run-*`)",
+    )
 
 
 def make_loggers(args: argparse.Namespace, out: str) -> list[Any]:
@@ -35,13 +43,21 @@ def make_loggers(args: argparse.Namespace, out: str) -> list[Any]:
 
 def add_cluster_arguments(parser: argparse.ArgumentParser) -> None:
     """--cluster / --cluster-option flags (batches as jobs through submitit; docs/cluster.md)."""
-    parser.add_argument("--cluster", metavar="TARGET",
-                        help="run the batches as jobs through submitit (the [cluster] extra): local:N for N worker "
-                        "processes here, slurm:PARTITION[:JOBS] for Slurm jobs on a whole node each (--out must be "
-                        "on a filesystem the nodes share; docs/cluster.md)")
-    parser.add_argument("--cluster-option", action="append", default=[], metavar="NAME=VALUE",
-                        help="a submitit executor parameter for the jobs, e.g. account=lab or time=600 (Slurm "
-                        "minutes); the value is read as JSON when it parses, else as text")
+    parser.add_argument(
+        "--cluster",
+        metavar="TARGET",
+        help="run the batches as jobs through submitit (the [cluster] extra): local:N for N worker "
+        "processes here, slurm:PARTITION[:JOBS] for Slurm jobs on a whole node each (--out must be "
+        "on a filesystem the nodes share; docs/cluster.md)",
+    )
+    parser.add_argument(
+        "--cluster-option",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a submitit executor parameter for the jobs, e.g. account=lab or time=600 (Slurm "
+        "minutes); the value is read as JSON when it parses, else as text",
+    )
 
 
 def cluster_from_args(args: argparse.Namespace) -> tuple[str | None, dict[str, Any]]:
@@ -56,8 +72,10 @@ def cluster_from_args(args: argparse.Namespace) -> tuple[str | None, dict[str, A
     for option in options:
         name, sep, text = option.partition("=")
         if not sep or not name.isidentifier():
-            raise ValueError(f"--cluster-option: got {option!r}; allowed values: NAME=VALUE, NAME a submitit "
-                             "executor parameter (e.g. account=lab, time=600)")
+            raise ValueError(
+                f"--cluster-option: got {option!r}; allowed values: NAME=VALUE, NAME a submitit "
+                "executor parameter (e.g. account=lab, time=600)"
+            )
         try:
             parameters[name] = json.loads(text)
         except ValueError:
@@ -84,5 +102,7 @@ def disk_error_message(error: OSError, out: str | None) -> str | None:
     if error.filename and str(error.filename) not in what:
         what = f"{what}: {error.filename}"
     kept = f" in {out}" if out else ""
-    return (f"{what} [{errno.errorcode.get(error.errno, error.errno)}]. Everything finished before it is kept{kept}; "
-            "free some space (or fix the permissions) and rerun the same command to resume")
+    return (
+        f"{what} [{errno.errorcode.get(error.errno, error.errno)}]. Everything finished before it is kept{kept}; "
+        "free some space (or fix the permissions) and rerun the same command to resume"
+    )

@@ -22,20 +22,30 @@ STEPS_FACTOR = 1.5  # the conditioned run's env steps, at most this many times o
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
-        "pareto", help="one cost-conditioned agent per seed: the cost front, with per-cost specialists",
-        description=" ".join(__doc__.split("\n\n")[0].split()))
+        "pareto",
+        help="one cost-conditioned agent per seed: the cost front, with per-cost specialists",
+        description=" ".join(__doc__.split("\n\n")[0].split()),
+    )
     parser.add_argument("--env", default="CartPole-v0", help="environment id (default: CartPole-v0)")
-    parser.add_argument("--agent", nargs="+", default=["dqn", "ppo"], metavar="AGENT",
-                        help=f"agents (default: dqn ppo): {agent_list()}")
+    parser.add_argument(
+        "--agent", nargs="+", default=["dqn", "ppo"], metavar="AGENT", help=f"agents (default: dqn ppo): {agent_list()}"
+    )
     parser.add_argument("--seeds", type=int, metavar="N", help="seeds 0..N-1 (default: 5)")
     parser.add_argument("--seed-list", nargs="+", type=int, metavar="S", help="explicit seeds instead")
-    parser.add_argument("--cost-high", type=float, default=0.5,
-                        help="costs are drawn from [0, COST_HIGH] (default: 0.5)")
-    parser.add_argument("--grid-step", type=float, default=0.05,
-                        help="the front's cost grid: 0, STEP, ..., COST_HIGH (default: 0.05)")
-    parser.add_argument("--specialist-costs", nargs="*", type=float, default=[0.1, 0.2, 0.3], metavar="C",
-                        help="costs of the per-cost specialists, in [0, COST_HIGH]; none: skip them (default: 0.1 "
-                             "0.2 0.3)")
+    parser.add_argument(
+        "--cost-high", type=float, default=0.5, help="costs are drawn from [0, COST_HIGH] (default: 0.5)"
+    )
+    parser.add_argument(
+        "--grid-step", type=float, default=0.05, help="the front's cost grid: 0, STEP, ..., COST_HIGH (default: 0.05)"
+    )
+    parser.add_argument(
+        "--specialist-costs",
+        nargs="*",
+        type=float,
+        default=[0.1, 0.2, 0.3],
+        metavar="C",
+        help="costs of the per-cost specialists, in [0, COST_HIGH]; none: skip them (default: 0.1 0.2 0.3)",
+    )
     parser.add_argument("--steps", type=int, help="a specialist's env steps (default: the env's replication budget)")
     parser.add_argument("--eval-every", type=int, help="env steps between evaluations (default: the env's)")
     parser.add_argument("--out", required=True, help="output folder (rerun to resume)")
@@ -60,21 +70,33 @@ def _specs(args: argparse.Namespace) -> tuple[Any, Any, list[float]]:
     for cost in args.specialist_costs:
         check_real("--specialist-costs", cost, low=0.0)
         if cost > high:  # the conditioned agent would be scored at a cost it never trained on
-            raise ValueError(f"--specialist-costs: got {cost:g}, above --cost-high {high:g}; the conditioned agent "
-                             f"trains on costs in [0, {high:g}] and is compared with each specialist at its cost; "
-                             f"allowed values: costs in [0, {high:g}] (or raise --cost-high)")
+            raise ValueError(
+                f"--specialist-costs: got {cost:g}, above --cost-high {high:g}; the conditioned agent "
+                f"trains on costs in [0, {high:g}] and is compared with each specialist at its cost; "
+                f"allowed values: costs in [0, {high:g}] (or raise --cost-high)"
+            )
     steps, every = REPLICATE_BUDGETS.get(args.env, QUICK_BUDGETS.get(args.env, (153_600, 10_240)))
     steps = steps if args.steps is None else check_positive_int("--steps", args.steps)
     every = every if args.eval_every is None else check_positive_int("--eval-every", args.eval_every)
     agents = tuple(args.agent)
-    common = {"envs": (args.env,), "agents": agents, "seeds": seeds, "eval_every": every,
-              "env_defaults": {args.env: env_hyperparams(args.env, agents)}}
-    specialists, _ = round_schedule(SweepSpec(**common, costs=tuple(args.specialist_costs) or (0.1,),
-                                              total_timesteps=steps))
+    common = {
+        "envs": (args.env,),
+        "agents": agents,
+        "seeds": seeds,
+        "eval_every": every,
+        "env_defaults": {args.env: env_hyperparams(args.env, agents)},
+    }
+    specialists, _ = round_schedule(
+        SweepSpec(**common, costs=tuple(args.specialist_costs) or (0.1,), total_timesteps=steps)
+    )
     every = specialists.eval_every
     conditioned_steps = max(every, int(STEPS_FACTOR * specialists.total_timesteps) // every * every)
-    conditioned = SweepSpec(**{**common, "eval_every": every}, costs=(0.0,), total_timesteps=conditioned_steps,
-                            hyperparams={"cost_conditioned": True, "cost_high": high})
+    conditioned = SweepSpec(
+        **{**common, "eval_every": every},
+        costs=(0.0,),
+        total_timesteps=conditioned_steps,
+        hyperparams={"cost_conditioned": True, "cost_high": high},
+    )
     expand(conditioned)
     expand(specialists)
     grid = {round(step * i, 6) for i in range(int(high / step + 1e-9) + 1)}
@@ -108,14 +130,23 @@ def run(args: argparse.Namespace, error: Any) -> int:
     ratio = conditioned.total_timesteps / (specialists or conditioned).total_timesteps
     seeds = conditioned.seeds
     shown = f"0-{seeds[-1]}" if seeds == tuple(range(len(seeds))) else " ".join(map(str, seeds))
-    lines = [f"# Cost front: {args.env}, agents {', '.join(args.agent)}, seeds {shown}", "",
-             f"Conditioned agents: costs drawn from [0, {args.cost_high}], {conditioned.total_timesteps:,} env steps "
-             f"each ({ratio:.2f}x a specialist's). Medians over seeds, 100 fresh test episodes per cost.", "",
-             to_markdown(_costs_as_text(front_medians(points))), ""]
+    lines = [
+        f"# Cost front: {args.env}, agents {', '.join(args.agent)}, seeds {shown}",
+        "",
+        f"Conditioned agents: costs drawn from [0, {args.cost_high}], {conditioned.total_timesteps:,} env steps "
+        f"each ({ratio:.2f}x a specialist's). Medians over seeds, 100 fresh test episodes per cost.",
+        "",
+        to_markdown(_costs_as_text(front_medians(points))),
+        "",
+    ]
     if special is not None:
-        lines += ["Against the specialists (their best policies re-scored by their sweep on 100 fresh episodes; gap: "
-                  "(conditioned - specialists) / |specialists|, positive when the conditioned agent scores more):", "",
-                  to_markdown(_costs_as_text(front_table(points, special))), ""]
+        lines += [
+            "Against the specialists (their best policies re-scored by their sweep on 100 fresh episodes; gap: "
+            "(conditioned - specialists) / |specialists|, positive when the conditioned agent scores more):",
+            "",
+            to_markdown(_costs_as_text(front_table(points, special))),
+            "",
+        ]
     (out / "table.md").write_text("\n".join(lines))
     plot_front(points, special, out / "front.png", title=args.env)
     print("\n".join(lines))

@@ -44,20 +44,35 @@ def replicate_grid(
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
-        "replicate", help="run the paper's grid (350 configurations; --extended: 600) and write its report",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        "replicate",
+        help="run the paper's grid (350 configurations; --extended: 600) and write its report",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--out", default="runs/replicate", help="output folder (rerun to resume)")
-    parser.add_argument("--env", nargs="+", default=list(REPLICATE_BUDGETS), metavar="ENV",
-                        help=f"a subset of {', '.join(REPLICATE_BUDGETS)}")
-    parser.add_argument("--agent", nargs="+", metavar="AGENT",
-                        help="these agents on every env (default: the paper's: dqn and ppo everywhere, drqn on "
-                        "CartPole-v0); agents: ppo, dqn (Dueling Double DQN with n-step returns), drqn, ppo-rnn")
-    parser.add_argument("--extended", action="store_true",
-                        help=f"the extended grid: {', '.join(EXTENDED_AGENTS)} on every env")
+    parser.add_argument(
+        "--env",
+        nargs="+",
+        default=list(REPLICATE_BUDGETS),
+        metavar="ENV",
+        help=f"a subset of {', '.join(REPLICATE_BUDGETS)}",
+    )
+    parser.add_argument(
+        "--agent",
+        nargs="+",
+        metavar="AGENT",
+        help="these agents on every env (default: the paper's: dqn and ppo everywhere, drqn on "
+        "CartPole-v0); agents: ppo, dqn (Dueling Double DQN with n-step returns), drqn, ppo-rnn",
+    )
+    parser.add_argument(
+        "--extended", action="store_true", help=f"the extended grid: {', '.join(EXTENDED_AGENTS)} on every env"
+    )
     parser.add_argument("--seeds", type=int, help="seeds per setting (default: 10; 2 with --quick)")
-    parser.add_argument("--quick", action="store_true",
-                        help="a smoke run of the same grid: 40,960 steps per configuration (default 2 seeds)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="a smoke run of the same grid: 40,960 steps per configuration (default 2 seeds)",
+    )
     parser.add_argument("--max-batch", type=int, default=1024, help="most configurations per compiled batch")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--no-maps", action="store_true", help="skip the reports' measurement maps")
@@ -71,17 +86,27 @@ def _index(out: Path, timings: dict[str, float], reports: dict[str, Path]) -> Pa
     from amjax.analysis.report import format_paper_table
     from amjax.analysis.tables import to_markdown
 
-    lines = ["# Replication report", "",
-             "Bellinger et al. (Canadian AI 2022), replicated with amjax: per environment, the median over seeds of "
-             "the best test costed return and the measured fraction at that evaluation; the full reports (figures, "
-             "measurement maps, per-configuration tables) are linked below.", ""]
+    lines = [
+        "# Replication report",
+        "",
+        "Bellinger et al. (Canadian AI 2022), replicated with amjax: per environment, the median over seeds of "
+        "the best test costed return and the measured fraction at that evaluation; the full reports (figures, "
+        "measurement maps, per-configuration tables) are linked below.",
+        "",
+    ]
     tables = []
     for env, report in reports.items():
         table = pd.read_csv(report.parent / "paper_table.csv")
         tables.append(table)
         link = report.relative_to(out)
-        lines += [f"## {env}", "", f"Report: [{link}]({link}); wall time (all invocations together): "
-                  f"{timings[env] / 60:.1f} min.", "", to_markdown(format_paper_table(table)), ""]
+        lines += [
+            f"## {env}",
+            "",
+            f"Report: [{link}]({link}); wall time (all invocations together): {timings[env] / 60:.1f} min.",
+            "",
+            to_markdown(format_paper_table(table)),
+            "",
+        ]
     if tables:
         pd.concat(tables, ignore_index=True).to_csv(out / "paper_table.csv", index=False)
     path = out / "report.md"
@@ -121,8 +146,9 @@ def run(args: argparse.Namespace, error: Any) -> int:
     return 0
 
 
-def _replicate(specs: dict[str, Any], out: Path, args: argparse.Namespace, cluster: str | None,
-               cluster_parameters: dict[str, Any]) -> Path:
+def _replicate(
+    specs: dict[str, Any], out: Path, args: argparse.Namespace, cluster: str | None, cluster_parameters: dict[str, Any]
+) -> Path:
     """Run (or resume) each environment's sweep (its batches on `cluster` if given) and report, then write the
     joint report; returns its path."""
     from amjax.analysis import write_report
@@ -148,9 +174,16 @@ def _replicate(specs: dict[str, Any], out: Path, args: argparse.Namespace, clust
         for i, (env, spec) in enumerate(specs.items()):
             if i + 1 < len(envs):
                 queue(envs[i + 1])
-            run_sweep(spec, out / env, max_batch=args.max_batch, progress=not args.no_progress,
-                      loggers=make_loggers(args, str(out / env)), cluster=cluster,
-                      cluster_parameters=cluster_parameters, compile_queue=compiler)
+            run_sweep(
+                spec,
+                out / env,
+                max_batch=args.max_batch,
+                progress=not args.no_progress,
+                loggers=make_loggers(args, str(out / env)),
+                cluster=cluster,
+                cluster_parameters=cluster_parameters,
+                compile_queue=compiler,
+            )
             wall_time = WallTime(out / env / "wall_time.json", new_invocation=False)
             with COMPILE_LOCK:  # the report's measurement maps compile; never beside the queue's compiles
                 reports[env] = write_report(out / env, maps=not args.no_maps)

@@ -24,8 +24,11 @@ def _add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("folder", help="a sweep's output folder (the --out of `python -m train sweep`)")
     parser.add_argument("--out", help="report folder (default: FOLDER/report)")
     parser.add_argument("--svg", action="store_true", help="also save every figure as SVG")
-    parser.add_argument("--no-maps", action="store_true",
-                        help="skip the measurement maps of the saved best policies (they run each policy)")
+    parser.add_argument(
+        "--no-maps",
+        action="store_true",
+        help="skip the measurement maps of the saved best policies (they run each policy)",
+    )
     return parser
 
 
@@ -42,8 +45,9 @@ def run(args: argparse.Namespace) -> int:
     from amjax.analysis import NotASweepError, write_report
 
     try:
-        report = write_report(args.folder, args.out, formats=("png", "svg") if args.svg else ("png",),
-                              maps=not args.no_maps)
+        report = write_report(
+            args.folder, args.out, formats=("png", "svg") if args.svg else ("png",), maps=not args.no_maps
+        )
     except NotASweepError as error:
         print(f"{PROG}: error: {error}", file=sys.stderr)
         return 2

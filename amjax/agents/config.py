@@ -118,6 +118,7 @@ class AgentConfig:
         unknown = sorted(set(fields) - known)
         if unknown:
             raise ValueError(f"fields: {cls.__name__} has no field(s) {', '.join(unknown)}")
+
         def frozen(value: Any) -> Any:  # JSON lists back to (nested) tuples
             return tuple(frozen(v) for v in value) if isinstance(value, list) else value
 
@@ -149,12 +150,23 @@ class AgentConfig:
         check_choice("measure_head", self.measure_head, MEASURE_HEADS)
         check_bool("cost_conditioned", self.cost_conditioned)
         if self.measure_head == "factored" and (self.vanilla or space != "Discrete"):
-            raise ValueError("measure_head: 'factored' splits a Discrete control's (control, measure) pairs; "
-                             + ("a vanilla run has no measure choice" if self.vanilla else
-                                f"{self.env_id}'s {space} control already has a measure entry of its own")
-                             + "; allowed there: 'joint'")
-        bounds = {"cost": "nonnegative", "noise_std": "nonnegative", "budget": "count",
-                  "cost_low": "nonnegative", "cost_high": "nonnegative", **self.TRACED_BOUNDS}
+            raise ValueError(
+                "measure_head: 'factored' splits a Discrete control's (control, measure) pairs; "
+                + (
+                    "a vanilla run has no measure choice"
+                    if self.vanilla
+                    else f"{self.env_id}'s {space} control already has a measure entry of its own"
+                )
+                + "; allowed there: 'joint'"
+            )
+        bounds = {
+            "cost": "nonnegative",
+            "noise_std": "nonnegative",
+            "budget": "count",
+            "cost_low": "nonnegative",
+            "cost_high": "nonnegative",
+            **self.TRACED_BOUNDS,
+        }
         if num_instruments:
             bounds.update(instrument_costs="nonnegative", instrument_noise="nonnegative")
         for name, kind in bounds.items():
@@ -178,11 +190,13 @@ class AgentConfig:
         check_positive_int("train_group", self.train_group, minimum=0)
         for name in self.WIDTH_FIELDS:  # network widths: tuples of positive integers
             value = getattr(self, name)
-            if (not isinstance(value, tuple | list) or not all(
-                    isinstance(v, int | np.integer) and not isinstance(v, bool) and 1 <= v <= MAX_WIDTH
-                    for v in value)):
-                raise ValueError(f"{name}: got {value!r}; allowed values: a tuple of integers in [1, {MAX_WIDTH:,}], "
-                                 "e.g. (64, 64), or () for none")
+            if not isinstance(value, tuple | list) or not all(
+                isinstance(v, int | np.integer) and not isinstance(v, bool) and 1 <= v <= MAX_WIDTH for v in value
+            ):
+                raise ValueError(
+                    f"{name}: got {value!r}; allowed values: a tuple of integers in [1, {MAX_WIDTH:,}], "
+                    "e.g. (64, 64), or () for none"
+                )
         steps = self.steps_per_update()
         if self.eval_every % steps or self.total_timesteps % self.eval_every:
             total, every = nearest_schedule(self.total_timesteps, self.eval_every, steps)
@@ -197,10 +211,16 @@ class AgentConfig:
         """mode, noise_std and vanilla as `amjax.make` checks them (`check_measure_setup`, one check for both; a
         noise_std of 0, the default, is unset); a vanilla run takes none of the measurement options."""
         cost_set = not isinstance(self.cost, jax.core.Tracer) and bool(np.any(np.asarray(self.cost)))
-        options = {"cost": cost_set, "extra_obs": bool(self.extra_obs), "budgeted": self.budgeted,
-                   "reward_timing": self.reward_timing != "immediate", "instruments": self.instruments != (),
-                   "instrument_costs": bool(self.instrument_costs), "instrument_noise": bool(self.instrument_noise),
-                   "cost_conditioned": self.cost_conditioned}
+        options = {
+            "cost": cost_set,
+            "extra_obs": bool(self.extra_obs),
+            "budgeted": self.budgeted,
+            "reward_timing": self.reward_timing != "immediate",
+            "instruments": self.instruments != (),
+            "instrument_costs": bool(self.instrument_costs),
+            "instrument_noise": bool(self.instrument_noise),
+            "cost_conditioned": self.cost_conditioned,
+        }
         check_measure_setup(self.vanilla, self.mode, self.noise_std, options)
 
     def check_cost_range(self) -> None:
@@ -213,11 +233,14 @@ class AgentConfig:
             if np.any(low > high):
                 raise ValueError(f"cost_low: got {low}, above cost_high {high}; allowed: cost_low <= cost_high")
             if np.any(cost):
-                raise ValueError("cost: a cost-conditioned run draws each episode's cost from [cost_low, cost_high]; "
-                                 "allowed values: 0 (e.g. --cost 0 --set cost_conditioned=True --set cost_high=0.5)")
+                raise ValueError(
+                    "cost: a cost-conditioned run draws each episode's cost from [cost_low, cost_high]; "
+                    "allowed values: 0 (e.g. --cost 0 --set cost_conditioned=True --set cost_high=0.5)"
+                )
         elif np.any(low) or np.any(high):
-            raise ValueError("cost_low, cost_high: set cost_conditioned=True to draw costs from a range (they are "
-                             "ignored without)")
+            raise ValueError(
+                "cost_low, cost_high: set cost_conditioned=True to draw costs from a range (they are ignored without)"
+            )
 
     def check_instruments(self, env: Any, env_params: Any) -> int:
         """Check `instruments` and the lengths of their prices and noise; returns the number of instruments."""
@@ -226,12 +249,15 @@ class AgentConfig:
         for name in ("instrument_costs", "instrument_noise"):
             value = getattr(self, name)
             if not isinstance(value, tuple):
-                raise ValueError(f"{name}: got {value!r}; allowed values: a tuple of numbers >= 0, one per instrument, "
-                                 "or () for zeros")
+                raise ValueError(
+                    f"{name}: got {value!r}; allowed values: a tuple of numbers >= 0, one per instrument, "
+                    "or () for zeros"
+                )
             if value and len(value) != len(instruments):
-                raise ValueError(f"{name}: got {len(value)} values for {len(instruments)} instruments; allowed: one "
-                                 "number >= 0 per instrument, or () for zeros" + ("" if instruments else
-                                                                                    " (set instruments first)"))
+                raise ValueError(
+                    f"{name}: got {len(value)} values for {len(instruments)} instruments; allowed: one "
+                    "number >= 0 per instrument, or () for zeros" + ("" if instruments else " (set instruments first)")
+                )
         return len(instruments)
 
     def check_fields(self) -> None:

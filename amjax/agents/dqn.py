@@ -66,8 +66,9 @@ class DQNState:
 
 
 def network(config: DQNConfig, action_space: Any) -> DuelingQNetwork:
-    return DuelingQNetwork(action_space.n, tuple(config.hidden), config.activation, config.dueling,
-                           config.factored_masks)
+    return DuelingQNetwork(
+        action_space.n, tuple(config.hidden), config.activation, config.dueling, config.factored_masks
+    )
 
 
 def _example_item(envs: EnvBatch) -> dict[str, jax.Array]:
@@ -113,9 +114,7 @@ def update(config: DQNConfig, setup: Setup, state: DQNState) -> tuple[DQNState, 
     envs, _, transitions, _ = rollout(
         setup.env, setup.env_params, state.envs, None, act, rollout_key, config.train_freq
     )
-    window = jax.tree.map(
-        lambda p, x: jnp.concatenate([p, x]), state.pending, transition_arrays(config, transitions)
-    )
+    window = jax.tree.map(lambda p, x: jnp.concatenate([p, x]), state.pending, transition_arrays(config, transitions))
     items = n_step_transitions(window, config.n_step, config.gamma)  # complete for the first train_freq steps
     pending = jax.tree.map(lambda x: x[config.train_freq :], window)
     buffer = replay_add(state.buffer, jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), items))
@@ -129,9 +128,7 @@ def update(config: DQNConfig, setup: Setup, state: DQNState) -> tuple[DQNState, 
             q_taken = jnp.take_along_axis(q, sample["action"][:, None], -1)[:, 0]
             q_next_target = network.apply(target_params, sample["next_obs"])
             q_next_online = network.apply(params, sample["next_obs"]) if config.double_q else q_next_target
-            target = td_targets(
-                q_next_online, q_next_target, sample["reward"], sample["discount"], config.double_q
-            )
+            target = td_targets(q_next_online, q_next_target, sample["reward"], sample["discount"], config.double_q)
             return optax.huber_loss(q_taken, jax.lax.stop_gradient(target)).mean()
 
         def gradient_step(carry, sample):

@@ -163,8 +163,10 @@ def for_action_space(space: Any, measure: bool, readings: int = 1, factored: boo
     masks = 2**readings
     if isinstance(space, spaces.Discrete):
         if measure and int(space.n) % masks:
-            raise ValueError(f"action space: an active-measure Discrete space with {readings} instrument(s) has "
-                             f"{masks} x controls actions, got {space}")
+            raise ValueError(
+                f"action space: an active-measure Discrete space with {readings} instrument(s) has "
+                f"{masks} x controls actions, got {space}"
+            )
         return Categorical(int(space.n), bool(measure), readings, bool(factored))
     entries = readings * int(measure)
     if isinstance(space, spaces.Box) and len(space.shape) == 1 and space.shape[0] > entries:

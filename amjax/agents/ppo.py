@@ -44,8 +44,7 @@ class PPOConfig(PPOBaseConfig):
         super().check_fields()
         if self.steps_per_update() % self.num_minibatches:
             raise ValueError(
-                f"num_minibatches={self.num_minibatches} must divide num_envs * num_steps "
-                f"= {self.steps_per_update()}"
+                f"num_minibatches={self.num_minibatches} must divide num_envs * num_steps = {self.steps_per_update()}"
             )
 
 
@@ -59,10 +58,12 @@ class PPOState:
 
 
 def network(config: PPOConfig, action_space: Any) -> ActorCritic:
-    distribution = for_action_space(action_space, measure=not config.vanilla, readings=config.num_instruments,
-                                    factored=config.factored_masks > 0)
-    return ActorCritic(distribution, tuple(config.hidden), config.activation, config.shared_network,
-                        config.measure_prior)
+    distribution = for_action_space(
+        action_space, measure=not config.vanilla, readings=config.num_instruments, factored=config.factored_masks > 0
+    )
+    return ActorCritic(
+        distribution, tuple(config.hidden), config.activation, config.shared_network, config.measure_prior
+    )
 
 
 def init(config: PPOConfig, setup: Setup, key: jax.Array) -> PPOState:
@@ -125,9 +126,7 @@ def update(config: PPOConfig, setup: Setup, state: PPOState) -> tuple[PPOState, 
 
         def epoch(carry, key):
             order = shuffle(key, config.steps_per_update())
-            minibatches = jax.tree.map(
-                lambda x: x[order].reshape(config.num_minibatches, -1, *x.shape[1:]), batch
-            )
+            minibatches = jax.tree.map(lambda x: x[order].reshape(config.num_minibatches, -1, *x.shape[1:]), batch)
             return jax.lax.scan(step, carry, minibatches)
 
         (params, opt_state), losses = jax.lax.scan(
@@ -152,5 +151,15 @@ PPO = Algorithm("ppo", PPOConfig, network, init, update, greedy, params=lambda s
 train = make_train(PPO)
 
 __all__ = [
-    "PPO", "PPOConfig", "PPOState", "clipped_loss", "gae", "greedy", "init", "network", "shuffle", "train", "update",
+    "PPO",
+    "PPOConfig",
+    "PPOState",
+    "clipped_loss",
+    "gae",
+    "greedy",
+    "init",
+    "network",
+    "shuffle",
+    "train",
+    "update",
 ]

@@ -124,9 +124,7 @@ def gae(
         advantage = delta + gamma * gae_lambda * (1.0 - done_t) * advantage
         return advantage, advantage
 
-    _, advantages = jax.lax.scan(
-        backward, jnp.zeros_like(deltas[0]), (deltas, done.astype(deltas.dtype)), reverse=True
-    )
+    _, advantages = jax.lax.scan(backward, jnp.zeros_like(deltas[0]), (deltas, done.astype(deltas.dtype)), reverse=True)
     return advantages, advantages + values
 
 

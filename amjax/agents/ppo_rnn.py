@@ -76,10 +76,12 @@ class PPORNNState:
 
 
 def network(config: PPORNNConfig, action_space: Any) -> RecurrentActorCritic:
-    distribution = for_action_space(action_space, measure=not config.vanilla, readings=config.num_instruments,
-                                    factored=config.factored_masks > 0)
-    return RecurrentActorCritic(distribution, tuple(config.hidden), config.rnn_size, config.cell, config.activation,
-                                config.measure_prior)
+    distribution = for_action_space(
+        action_space, measure=not config.vanilla, readings=config.num_instruments, factored=config.factored_masks > 0
+    )
+    return RecurrentActorCritic(
+        distribution, tuple(config.hidden), config.rnn_size, config.cell, config.activation, config.measure_prior
+    )
 
 
 def init(config: PPORNNConfig, setup: Setup, key: jax.Array) -> PPORNNState:
@@ -165,6 +167,14 @@ PPO_RNN = Algorithm("ppo-rnn", PPORNNConfig, network, init, update, greedy, para
 train = make_train(PPO_RNN)
 
 __all__ = [
-    "PPO_RNN", "PPORNNConfig", "PPORNNState", "collect", "greedy", "init", "network", "train", "unroll_sequences",
+    "PPO_RNN",
+    "PPORNNConfig",
+    "PPORNNState",
+    "collect",
+    "greedy",
+    "init",
+    "network",
+    "train",
+    "unroll_sequences",
     "update",
 ]

@@ -65,7 +65,12 @@ class QLearningConfig(AgentConfig):
 
     def check_fields(self) -> None:
         for name in (
-            "num_envs", "buffer_size", "batch_size", "train_freq", "gradient_steps", "target_update_interval",
+            "num_envs",
+            "buffer_size",
+            "batch_size",
+            "train_freq",
+            "gradient_steps",
+            "target_update_interval",
             "n_step",
         ):
             check_positive_int(name, getattr(self, name))

@@ -69,9 +69,9 @@ def step_envs(
     env: Any, env_params: Any, batch: EnvBatch, action: jax.Array, key: jax.Array
 ) -> tuple[EnvBatch, Transition]:
     keys = jax.random.split(key, batch.obs.shape[0])
-    obs, state, reward, terminated, truncated, info = jax.vmap(
-        env.step, in_axes=(0, 0, 0, None)
-    )(keys, batch.state, action, env_params)
+    obs, state, reward, terminated, truncated, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+        keys, batch.state, action, env_params
+    )
     if "paid_at_truncation" in info:  # counted once, by the bootstrap value (see `Transition`)
         reward = reward - info["paid_at_truncation"]
     transition = Transition(

@@ -83,8 +83,9 @@ def _evaluate(agent: str, config: AgentConfig, params: Any, key: jax.Array, num_
     algo = algorithm(agent)
     setup = algo.setup(config)
     if draw is not None:
-        setup = setup.replace(env_params=setup.env_params.replace(cost_low=jnp.float32(draw),
-                                                                   cost_high=jnp.float32(draw)))
+        setup = setup.replace(
+            env_params=setup.env_params.replace(cost_low=jnp.float32(draw), cost_high=jnp.float32(draw))
+        )
     return evaluate_greedy(algo, config, setup, params, key, num_episodes)
 
 
@@ -98,14 +99,21 @@ class Actor:
         self._appended = np.zeros(0, np.float32)
         if saved.config.cost_conditioned:
             if cost is None:
-                raise ValueError("cost: a cost-conditioned policy acts at a cost; allowed values: a number >= 0 "
-                                 "(e.g. actor(cost=0.2), in an env that charges 0.2)")
-            seen = scaled_cost(jnp.float32(check_real("cost", cost, low=0.0)), jnp.float32(saved.config.cost_low),
-                               jnp.float32(saved.config.cost_high))
+                raise ValueError(
+                    "cost: a cost-conditioned policy acts at a cost; allowed values: a number >= 0 "
+                    "(e.g. actor(cost=0.2), in an env that charges 0.2)"
+                )
+            seen = scaled_cost(
+                jnp.float32(check_real("cost", cost, low=0.0)),
+                jnp.float32(saved.config.cost_low),
+                jnp.float32(saved.config.cost_high),
+            )
             self._appended = np.asarray(seen).reshape(1)
         elif cost is not None:
-            raise ValueError(f"cost: got {cost!r} for a policy that is not cost-conditioned; allowed values: None "
-                             "(the env charges its own cost)")
+            raise ValueError(
+                f"cost: got {cost!r} for a policy that is not cost-conditioned; allowed values: None "
+                "(the env charges its own cost)"
+            )
 
         def step(obs, carry, first, key):
             key, act_key = jax.random.split(key)
@@ -168,8 +176,7 @@ def load_policy(path: str | Path) -> SavedPolicy:
         params = serialization.from_state_dict(template, stored)
     except (ValueError, KeyError, TypeError) as error:
         raise PolicyFileError(f"{path}: parameters do not fit the {agent} network of its config ({error})") from None
-    for (where, want), got in zip(jax.tree_util.tree_leaves_with_path(template), jax.tree.leaves(params),
-                                  strict=True):
+    for (where, want), got in zip(jax.tree_util.tree_leaves_with_path(template), jax.tree.leaves(params), strict=True):
         got = np.asarray(got)
         if got.shape != want.shape or got.dtype != want.dtype:
             raise PolicyFileError(
@@ -180,5 +187,10 @@ def load_policy(path: str | Path) -> SavedPolicy:
 
 
 __all__ = [
-    "Actor", "PolicyFileError", "SavedPolicy", "load_policy", "params_template", "save_policy",
+    "Actor",
+    "PolicyFileError",
+    "SavedPolicy",
+    "load_policy",
+    "params_template",
+    "save_policy",
 ]

@@ -76,8 +76,11 @@ class EvalRow:
     def columns(self) -> dict[str, jax.Array]:
         """The results table's columns (each with this row's leading axes)."""
         return {
-            "env_steps": self.env_steps, **self.test.columns("eval_"), **self.train.columns("train_"),
-            "loss": self.loss, "diverged": self.diverged,
+            "env_steps": self.env_steps,
+            **self.test.columns("eval_"),
+            **self.train.columns("train_"),
+            "loss": self.loss,
+            "diverged": self.diverged,
         }
 
 
@@ -203,9 +206,7 @@ def _train_period(algo: Algorithm, config: AgentConfig, algo_state: Any) -> tupl
     return jax.lax.scan(lambda s, _: algo.update(config, setup, s), algo_state, None, config.updates_per_eval)
 
 
-def run_evals(
-    algo: Algorithm, config: AgentConfig, state: RunState, num_evals: int
-) -> tuple[RunState, EvalRow]:
+def run_evals(algo: Algorithm, config: AgentConfig, state: RunState, num_evals: int) -> tuple[RunState, EvalRow]:
     """Train for `num_evals` evaluation periods; returns the new state and one `EvalRow` per period."""
     setup = algo.setup(config)
     train_period = partial(_train_period, algo)
@@ -262,9 +263,7 @@ def _argmax(values: jax.Array, key: jax.Array) -> jax.Array:
     return jnp.argmax(values, axis=-1)
 
 
-def greedy_policy(
-    outputs: Callable[[jax.Array], Any], mode: Callable[[Any, jax.Array], jax.Array] = _argmax
-) -> Policy:
+def greedy_policy(outputs: Callable[[jax.Array], Any], mode: Callable[[Any, jax.Array], jax.Array] = _argmax) -> Policy:
     """A memoryless test policy taking `mode(outputs(obs), key)`: by default the argmax of Q-values."""
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):

@@ -189,8 +189,15 @@ def plot_measurement_map(
     cmap = ListedColormap(colors)
     for ax, (label, mmap) in zip(axes, panels.items(), strict=True):
         episodes, steps = mmap.measured.shape
-        ax.imshow(mmap.grid(), cmap=cmap, vmin=0, vmax=len(colors) - 1, aspect="auto", interpolation="nearest",
-                  extent=(-0.5, steps - 0.5, episodes - 0.5, -0.5))
+        ax.imshow(
+            mmap.grid(),
+            cmap=cmap,
+            vmin=0,
+            vmax=len(colors) - 1,
+            aspect="auto",
+            interpolation="nearest",
+            extent=(-0.5, steps - 0.5, episodes - 0.5, -0.5),
+        )
         stats = f"measured {mmap.measured_fraction:.0%} of steps"
         if paired:
             stats += " (" + ", ".join(f"{n} {f:.0%}" for n, f in zip(names, mmap.reading_fractions, strict=True)) + ")"
@@ -203,8 +210,10 @@ def plot_measurement_map(
         labels = ("not measured", f"{names[0]} only", f"{names[1]} only", "both", "episode over")
         handles = [Patch(color=c, label=n) for c, n in zip(INSTRUMENT_COLORS, labels, strict=True)]
     else:
-        handles = [Patch(color=MAP_COLORS[i], label=name)
-                   for i, name in ((MEASURED, "measured"), (NOT_MEASURED, "not measured"), (OVER, "episode over"))]
+        handles = [
+            Patch(color=MAP_COLORS[i], label=name)
+            for i, name in ((MEASURED, "measured"), (NOT_MEASURED, "not measured"), (OVER, "episode over"))
+        ]
     fig.legend(handles=handles, loc="outside lower center", ncols=len(handles), fontsize="small")
     if title:
         fig.suptitle(title)

@@ -33,13 +33,23 @@ def cost_front(folder: str | Path, costs: Sequence[float], episodes: int = 100, 
     for run in summary.itertuples():
         policy = load_sweep_policy(folder, run.config_id)
         if not policy.config.cost_conditioned:
-            raise ValueError(f"folder: {run.config_id} in {folder} is not cost-conditioned; a front needs a sweep "
-                             "with cost_conditioned=True")
+            raise ValueError(
+                f"folder: {run.config_id} in {folder} is not cost-conditioned; a front needs a sweep "
+                "with cost_conditioned=True"
+            )
         for cost in costs:
             means = policy.evaluate(jax.random.key(key), episodes, cost=float(cost))
-            rows.append({"agent": run.agent, "seed": run.seed, "config_id": run.config_id, "cost": float(cost),
-                         "return": means["costed_return"], "raw_return": means["raw_return"],
-                         "measured": means["measurements"] / means["length"]})
+            rows.append(
+                {
+                    "agent": run.agent,
+                    "seed": run.seed,
+                    "config_id": run.config_id,
+                    "cost": float(cost),
+                    "return": means["costed_return"],
+                    "raw_return": means["raw_return"],
+                    "measured": means["measurements"] / means["length"],
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -53,10 +63,18 @@ def specialist_medians(summary: pd.DataFrame) -> pd.DataFrame:
     and of the paper's best-of-evaluations metric (biased upward; a conditioned run has none per cost: its
     evaluations mix costs)."""
     costed = summary[~summary.vanilla] if "vanilla" in summary else summary
-    return costed.assign(cost=costed.cost.round(6)).groupby(["agent", "cost"], as_index=False).agg(
-        **{"return": ("best_policy_return", "median"), "raw_return": ("best_policy_raw_return", "median"),
-           "measured": ("best_policy_measured_fraction", "median"),
-           "best": ("best_return", "median")})
+    return (
+        costed.assign(cost=costed.cost.round(6))
+        .groupby(["agent", "cost"], as_index=False)
+        .agg(
+            **{
+                "return": ("best_policy_return", "median"),
+                "raw_return": ("best_policy_raw_return", "median"),
+                "measured": ("best_policy_measured_fraction", "median"),
+                "best": ("best_return", "median"),
+            }
+        )
+    )
 
 
 def front_table(points: pd.DataFrame, specialists: pd.DataFrame) -> pd.DataFrame:
@@ -70,8 +88,12 @@ def front_table(points: pd.DataFrame, specialists: pd.DataFrame) -> pd.DataFrame
     return table
 
 
-def plot_front(points: pd.DataFrame, specialists: pd.DataFrame | None = None, path: str | Path | None = None,
-               title: str | None = None) -> Figure:
+def plot_front(
+    points: pd.DataFrame,
+    specialists: pd.DataFrame | None = None,
+    path: str | Path | None = None,
+    title: str | None = None,
+) -> Figure:
     """Costed reward and measured fraction against the cost: a line per conditioned agent (medians over seeds),
     stars for the specialists (an ordinary sweep's summary)."""
     medians = front_medians(points)

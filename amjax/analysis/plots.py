@@ -141,8 +141,15 @@ def learning_curves(
     ordered = sorted(legend, key=lambda label: float(label.split()[-1]))
     notes = {"best": "dotted: always-measure bound", "episodes": "dotted: same episodes, always measured", "none": ""}
     title = "\n".join(n for n in [notes[bound], "dashed: raw return" if raw else ""] if n) or None
-    fig.legend([legend[k] for k in ordered], ordered, loc="outside lower center", ncols=min(len(ordered), 6),
-               title=title, fontsize="small", title_fontsize="small")
+    fig.legend(
+        [legend[k] for k in ordered],
+        ordered,
+        loc="outside lower center",
+        ncols=min(len(ordered), 6),
+        title=title,
+        fontsize="small",
+        title_fontsize="small",
+    )
     return _finish(fig, path)
 
 
@@ -217,8 +224,7 @@ def cost_analysis(
         rows = table[table.env == env]
         for agent, line in rows.groupby("agent", sort=True):
             err = np.vstack([line["median"] - line.q25, line.q75 - line["median"]])
-            ax.errorbar(line.cost, line["median"], yerr=err, color=colors[agent], marker="o", capsize=4,
-                        label=agent)
+            ax.errorbar(line.cost, line["median"], yerr=err, color=colors[agent], marker="o", capsize=4, label=agent)
         costs = np.array(sorted(rows.cost.unique()))
         ticks = set(costs)
         if results is not None:
@@ -231,8 +237,15 @@ def cost_analysis(
                 ticks |= set(known)
             for (paper_env, agent), values in PAPER_BEST_RETURN.items():
                 if paper_env == env and agent in colors:
-                    ax.plot(list(values), list(values.values()), "*", color=colors[agent], markersize=10,
-                            markeredgecolor="black", label=f"{agent} (paper)")
+                    ax.plot(
+                        list(values),
+                        list(values.values()),
+                        "*",
+                        color=colors[agent],
+                        markersize=10,
+                        markeredgecolor="black",
+                        label=f"{agent} (paper)",
+                    )
         ax.set_title(env)
         ax.set_xlabel("measurement cost")
         ax.set_ylabel("best test costed return")
@@ -270,14 +283,27 @@ def agent_comparison(
             ]
             median, q25, q75 = (np.array(s, float) for s in zip(*stats, strict=True))
             x = np.arange(len(groups)) - 0.4 + width * (i + 0.5)
-            ax.bar(x, median, width, color=colors[agent], label=agent,
-                   yerr=np.vstack([median - q25, q75 - median]), capsize=3, error_kw={"linewidth": 1})
+            ax.bar(
+                x,
+                median,
+                width,
+                color=colors[agent],
+                label=agent,
+                yerr=np.vstack([median - q25, q75 - median]),
+                capsize=3,
+                error_kw={"linewidth": 1},
+            )
         if results is not None:
             for g, (is_vanilla, cost) in enumerate(groups):
                 if not is_vanilla:
                     level = always_measure_bound(results, env, [cost])[0]
-                    ax.hlines(level, g - 0.45, g + 0.45, label="always measure" if g == len(groups) - 1 else None,
-                              **BOUND_STYLE)
+                    ax.hlines(
+                        level,
+                        g - 0.45,
+                        g + 0.45,
+                        label="always measure" if g == len(groups) - 1 else None,
+                        **BOUND_STYLE,
+                    )
         ax.set_xticks(np.arange(len(groups)), ["vanilla" if v else f"cost {c:g}" for v, c in groups])
         ax.set_title(env)
         ax.set_ylabel("best test costed return")

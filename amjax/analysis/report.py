@@ -105,20 +105,26 @@ def _spec_lines(data: SweepData) -> list[str]:
         lines.append(f"- Hyperparameters: `{json.dumps(spec['hyperparams'])}`.")
     swept = [c for c in hyper_columns(data.results) if data.results[c].nunique(dropna=False) > 1]
     if swept:
-        lines.append(f"- Swept hyperparameters ({', '.join(swept)}): each figure shows, per env x agent x cost, "
-                     "the combination with the highest median best costed return; the table lists them all.")
+        lines.append(
+            f"- Swept hyperparameters ({', '.join(swept)}): each figure shows, per env x agent x cost, "
+            "the combination with the highest median best costed return; the table lists them all."
+        )
     versions = data.metadata.get("versions", {})
     if versions:
-        lines.append("- Versions: " + ", ".join(f"{k} {v}" for k, v in versions.items() if v) +
-                     f"; git {str(data.metadata.get('git_revision'))[:10]}; {data.metadata.get('machine', '?')}.")
+        lines.append(
+            "- Versions: "
+            + ", ".join(f"{k} {v}" for k, v in versions.items() if v)
+            + f"; git {str(data.metadata.get('git_revision'))[:10]}; {data.metadata.get('machine', '?')}."
+        )
     return lines
 
 
 def format_paper_table(table: pd.DataFrame) -> pd.DataFrame:
     """The paper table (`tables.paper_table`) with readable column names and a setting column."""
     shown = table.copy()
-    shown.insert(2, "setting", ["vanilla" if v else f"cost {c:g}" for v, c in zip(shown.vanilla, shown.cost,
-                                                                                  strict=True)])
+    shown.insert(
+        2, "setting", ["vanilla" if v else f"cost {c:g}" for v, c in zip(shown.vanilla, shown.cost, strict=True)]
+    )
     shown = shown.drop(columns=["vanilla", "cost"]).rename(columns=_TABLE_LABELS)
     return shown.dropna(axis=1, how="all")
 
@@ -132,12 +138,18 @@ def _map_lines(data: SweepData, path: Path, figure_dir: Path, formats: Sequence[
     costed = data.summary[~data.summary.vanilla.astype(bool) & data.summary.best_return.notna()]
     costed = costed[[policy_path(path, c).exists() for c in costed.config_id]]
     if costed.empty:
-        return ["_No saved policies in this sweep folder (sweeps write `policies/` since amjax 0.1; "
-                "`run_sweep(..., save_policies=False)` turns it off)._", ""]
-    lines = [f"The best saved policy (highest best test costed return over seeds) of each env x agent x cost, "
-             f"run greedily for {episodes} test episodes: a dark cell is a paid measurement, a light one a step "
-             "without one, grey is after the episode ended. Files: `policies/<config_id>.msgpack` "
-             "(`amjax.sweep.load_sweep_policy`).", ""]
+        return [
+            "_No saved policies in this sweep folder (sweeps write `policies/` since amjax 0.1; "
+            "`run_sweep(..., save_policies=False)` turns it off)._",
+            "",
+        ]
+    lines = [
+        f"The best saved policy (highest best test costed return over seeds) of each env x agent x cost, "
+        f"run greedily for {episodes} test episodes: a dark cell is a paid measurement, a light one a step "
+        "without one, grey is after the episode ended. Files: `policies/<config_id>.msgpack` "
+        "(`amjax.sweep.load_sweep_policy`).",
+        "",
+    ]
     for (env, agent), group in costed.groupby(["env", "agent"], sort=True):
         panels, chosen = {}, []
         for cost, runs in group.groupby("cost", sort=True):
@@ -148,10 +160,17 @@ def _map_lines(data: SweepData, path: Path, figure_dir: Path, formats: Sequence[
                 saved.config, saved.params, jax.random.key(0), num_episodes=episodes
             )
         name = re.sub(r"[^A-Za-z0-9._-]", "_", f"maps_{env}_{agent}")  # "brax:reacher" -> "brax_reacher"
-        plots.save_figure(plot_measurement_map(panels, title=f"{env}, {agent}"), figure_dir / f"{name}.{formats[0]}",
-                          formats[1:])
-        lines += [f"### {env}, {agent}", "", f"![{env} {agent} measurement maps](figures/{name}.{formats[0]})", "",
-                  "Policies: " + "; ".join(chosen) + ".", ""]
+        plots.save_figure(
+            plot_measurement_map(panels, title=f"{env}, {agent}"), figure_dir / f"{name}.{formats[0]}", formats[1:]
+        )
+        lines += [
+            f"### {env}, {agent}",
+            "",
+            f"![{env} {agent} measurement maps](figures/{name}.{formats[0]})",
+            "",
+            "Policies: " + "; ".join(chosen) + ".",
+            "",
+        ]
     return lines
 
 
@@ -177,13 +196,17 @@ def write_report(
     makers = _figure_makers(data)
 
     lines = [f"# Sweep report: {Path(path).resolve().name}", "", *_spec_lines(data), ""]
-    lines += ["## Results table", "",
-              "Per env x agent x cost, medians over seeds: best test costed return (q25-q75; the paper's metric, "
-              "the best of many noisy evaluations, so biased upward), fraction of test steps measured at that "
-              "evaluation, the same best policy re-scored on fresh test episodes never used to pick it (q25-q75, "
-              "and its measured fraction: the unbiased figure), measurements saved vs always measuring "
-              "(1 - fraction), the always-measure bound from this sweep's data and the gain over it, and the "
-              "paper's numbers (Bellinger et al., Canadian AI 2022) where it gives them.", ""]
+    lines += [
+        "## Results table",
+        "",
+        "Per env x agent x cost, medians over seeds: best test costed return (q25-q75; the paper's metric, "
+        "the best of many noisy evaluations, so biased upward), fraction of test steps measured at that "
+        "evaluation, the same best policy re-scored on fresh test episodes never used to pick it (q25-q75, "
+        "and its measured fraction: the unbiased figure), measurements saved vs always measuring "
+        "(1 - fraction), the always-measure bound from this sweep's data and the gain over it, and the "
+        "paper's numbers (Bellinger et al., Canadian AI 2022) where it gives them.",
+        "",
+    ]
     table = paper_table(data.summary, data.results)
     lines += [to_markdown(format_paper_table(table)), ""]
     table.to_csv(out / "paper_table.csv", index=False)
@@ -204,14 +227,35 @@ def write_report(
     else:
         lines += ["_Not drawn (maps=False / --no-maps)._", ""]
     configs = data.summary.sort_values(["env", "agent", "vanilla", "cost", "seed"])[
-        ["env", "agent", "vanilla", "cost", "seed", *hyper_columns(data.summary), "best_return",
-         "best_measured_fraction", "best_env_steps", "best_policy_return", "best_policy_measured_fraction",
-         "final_return", "diverged"]
-    ].rename(columns={"best_env_steps": "at env steps", "best_policy_return": "re-scored",
-                      "best_policy_measured_fraction": "re-scored measured fraction"})
+        [
+            "env",
+            "agent",
+            "vanilla",
+            "cost",
+            "seed",
+            *hyper_columns(data.summary),
+            "best_return",
+            "best_measured_fraction",
+            "best_env_steps",
+            "best_policy_return",
+            "best_policy_measured_fraction",
+            "final_return",
+            "diverged",
+        ]
+    ].rename(
+        columns={
+            "best_env_steps": "at env steps",
+            "best_policy_return": "re-scored",
+            "best_policy_measured_fraction": "re-scored measured fraction",
+        }
+    )
     configs.to_csv(out / "per_config.csv", index=False)
-    lines += ["## Per configuration", "", "Best, re-scored and final test costed return of every configuration "
-              "(also in per_config.csv).", ""]
+    lines += [
+        "## Per configuration",
+        "",
+        "Best, re-scored and final test costed return of every configuration (also in per_config.csv).",
+        "",
+    ]
     lines += [to_markdown(configs) if len(configs) <= _MAX_ROWS else f"_{len(configs)} rows: see per_config.csv._", ""]
     report = out / "report.md"
     report.write_text("\n".join(lines))

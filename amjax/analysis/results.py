@@ -26,9 +26,25 @@ from amjax.sweep.grid import MEASURE_FIELDS
 SETTING = ["env", "agent", "vanilla", "cost"]
 # Columns the runner writes itself; any other column of results.parquet is a swept hyperparameter.
 _RESULT_COLUMNS = {
-    "config_id", "env", "agent", "vanilla", "cost", "seed", "env_steps", "eval_return", "eval_raw_return",
-    "eval_length", "eval_measurements", "train_return", "train_raw_return", "train_length", "train_measurements",
-    "loss", "diverged", "eval_measured_fraction", "measured_fraction",
+    "config_id",
+    "env",
+    "agent",
+    "vanilla",
+    "cost",
+    "seed",
+    "env_steps",
+    "eval_return",
+    "eval_raw_return",
+    "eval_length",
+    "eval_measurements",
+    "train_return",
+    "train_raw_return",
+    "train_length",
+    "train_measurements",
+    "loss",
+    "diverged",
+    "eval_measured_fraction",
+    "measured_fraction",
 }
 
 
@@ -47,8 +63,14 @@ class SweepData(NamedTuple):
 def hyper_columns(frame: pd.DataFrame) -> list[str]:
     """The swept hyperparameter columns of a results or summary table."""
     known = _RESULT_COLUMNS | {
-        "best_return", "best_raw_return", "best_measured_fraction", "best_env_steps", "final_return",
-        "final_raw_return", "final_measured_fraction", "measurement_reduction",
+        "best_return",
+        "best_raw_return",
+        "best_measured_fraction",
+        "best_env_steps",
+        "final_return",
+        "final_raw_return",
+        "final_measured_fraction",
+        "measurement_reduction",
     }
     metrics = ("eval_", "train_", "best_", "final_")
     return sorted(c for c in frame.columns if c not in known and not c.startswith(metrics))
@@ -157,7 +179,8 @@ def agent_config(metadata: dict[str, Any], agent: str, env: str | None = None, *
     spec = metadata["spec"]
     env = spec["envs"][0] if env is None else env
     stored = [
-        c for c in metadata.get("agent_configs", [])
+        c
+        for c in metadata.get("agent_configs", [])
         if c.get("agent") == agent and c.get("env_id") == env and not c.get("vanilla")
     ]
     if stored:
@@ -165,8 +188,11 @@ def agent_config(metadata: dict[str, Any], agent: str, env: str | None = None, *
     else:
         owned = set(config_type.__dataclass_fields__)
         fields = {
-            "env_id": env, "mode": spec.get("mode", "last"), "total_timesteps": spec["total_timesteps"],
-            "eval_every": spec["eval_every"], "eval_episodes": spec["eval_episodes"],
+            "env_id": env,
+            "mode": spec.get("mode", "last"),
+            "total_timesteps": spec["total_timesteps"],
+            "eval_every": spec["eval_every"],
+            "eval_episodes": spec["eval_episodes"],
             **{k: v for k, v in spec.get("hyperparams", {}).items() if k in owned and not isinstance(v, list)},
         }
     fields = {k: v for k, v in fields.items() if k in config_type.__dataclass_fields__}

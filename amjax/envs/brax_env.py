@@ -86,8 +86,9 @@ def parse_id(env_id: str) -> tuple[str, str | None]:
     if not env_id.startswith(PREFIX) or len(parts) > 2 or not parts[0]:
         raise ValueError(f"env_id: got {env_id!r}; allowed values: 'brax:<env_name>' or 'brax:<env_name>:<backend>'")
     if len(parts) == 2 and parts[1] not in BACKENDS:
-        raise ValueError(f"env_id: unknown brax backend {parts[1]!r} in {env_id!r}; allowed values: "
-                         f"{', '.join(BACKENDS)}")
+        raise ValueError(
+            f"env_id: unknown brax backend {parts[1]!r} in {env_id!r}; allowed values: {', '.join(BACKENDS)}"
+        )
     return parts[0], parts[1] if len(parts) == 2 else None
 
 
@@ -106,8 +107,7 @@ def _cached_env(name: str, backend: str | None, env_id: str) -> BraxEnv:
     envs = import_brax_envs(env_id)
     known = sorted(getattr(envs, "_envs", {}))  # brax's registry (no public listing)
     if name not in known:
-        raise ValueError(f"env_id: unknown brax environment {name!r} in {env_id!r}; allowed values: "
-                         f"{', '.join(known)}")
+        raise ValueError(f"env_id: unknown brax environment {name!r} in {env_id!r}; allowed values: {', '.join(known)}")
     kwargs = {} if backend is None else {"backend": backend}
     # Loading a model computes arrays with jnp; inside a trace (an env first made inside a jitted function) they
     # would be tracers, cached here and leaked into every later program: compute them eagerly.
@@ -134,8 +134,10 @@ class BraxEnv(environment.Environment[BraxState, BraxParams]):
         self.env_id = env_id
         obs = jax.eval_shape(brax_env.reset, jax.random.key(0)).obs  # traced, not compiled
         if not isinstance(obs, jax.ShapeDtypeStruct) or len(obs.shape) != 1:
-            raise TypeError(f"env: {env_id} observes {obs}; amjax needs one 1-D array (brax's dict observations, "
-                            "e.g. for pixels, are not supported)")
+            raise TypeError(
+                f"env: {env_id} observes {obs}; amjax needs one 1-D array (brax's dict observations, "
+                "e.g. for pixels, are not supported)"
+            )
         self.obs_size = int(obs.shape[0])
         self.action_size = int(brax_env.action_size)
 
@@ -157,8 +159,10 @@ class BraxEnv(environment.Environment[BraxState, BraxParams]):
         stepped = self.brax_env.step(before.replace(metrics=dict(before.metrics), info=dict(before.info)), action)
         stepped = jax.tree.map(lambda new, old: jnp.asarray(new, old.dtype), stepped, before)
         terminated = stepped.done > 0
-        info = {"discount": 1.0 - terminated.astype(jnp.float32),
-                **{f"metrics/{name}": value for name, value in stepped.metrics.items()}}
+        info = {
+            "discount": 1.0 - terminated.astype(jnp.float32),
+            **{f"metrics/{name}": value for name, value in stepped.metrics.items()},
+        }
         return stepped.obs, BraxState(time=state.time + 1, brax_state=stepped), stepped.reward, terminated, info
 
     def is_terminated(self, state: BraxState, params: BraxParams) -> jax.Array:

@@ -122,7 +122,8 @@ def compile_batch(batch: Batch, target_chunks: int, devices: tuple[jax.Device, .
 
     def placed(tree: Any, weak: bool) -> Any:
         return jax.tree.map(
-            lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding, weak_type=weak and x.weak_type), tree)
+            lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding, weak_type=weak and x.weak_type), tree
+        )
 
     with COMPILE_LOCK:
         init, chunk = compiled_programs(batch.algo, evals_per_chunk, devices)
@@ -139,5 +140,13 @@ def compile_batch(batch: Batch, target_chunks: int, devices: tuple[jax.Device, .
         )
 
 
-__all__ = ["COMPILE_LOCK", "Batch", "BatchPrograms", "chunk_evals", "compile_batch", "compiled_programs",
-           "plan_batches", "rescore_program"]
+__all__ = [
+    "COMPILE_LOCK",
+    "Batch",
+    "BatchPrograms",
+    "chunk_evals",
+    "compile_batch",
+    "compiled_programs",
+    "plan_batches",
+    "rescore_program",
+]

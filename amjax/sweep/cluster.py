@@ -38,8 +38,10 @@ import pandas as pd
 from amjax.files import FolderBusyError, atomic_write, commit, folder_lock, remove_partial_writes
 from amjax.sweep import storage
 
-CLUSTER_TARGETS = ("local:N (N worker processes on this machine) or slurm:PARTITION[:JOBS] (Slurm jobs on "
-                   "PARTITION, a whole node each, at most JOBS at once; default 64)")
+CLUSTER_TARGETS = (
+    "local:N (N worker processes on this machine) or slurm:PARTITION[:JOBS] (Slurm jobs on "
+    "PARTITION, a whole node each, at most JOBS at once; default 64)"
+)
 POLL_S = 1.0
 MAX_ATTEMPTS = 3  # submissions of one batch before the sweep stops with an error
 SLURM_JOBS = 64
@@ -88,21 +90,27 @@ def check_parameters(target: ClusterTarget, parameters: Mapping[str, Any] | None
 
     setup = (parameters or {}).get("setup", [])
     if not isinstance(setup, list | tuple) or not all(isinstance(line, str) for line in setup):
-        raise ValueError(f"cluster_parameters: setup must be a list of shell lines, e.g. "
-                         f"[\"module load python\"]; got {setup!r}")
+        raise ValueError(
+            f'cluster_parameters: setup must be a list of shell lines, e.g. ["module load python"]; got {setup!r}'
+        )
     if target.kind == "slurm" and not (shutil.which("sbatch") and shutil.which("srun")):
-        raise ValueError(f"cluster: {target.kind}:{target.partition} needs Slurm's sbatch and srun on PATH; run the "
-                         "command on a node of the cluster (a login node), or use local:N here")
+        raise ValueError(
+            f"cluster: {target.kind}:{target.partition} needs Slurm's sbatch and srun on PATH; run the "
+            "command on a node of the cluster (a login node), or use local:N here"
+        )
     # Slurm: submitit's own list, the sbatch options it writes.
     allowed = set(LOCAL_PARAMETERS) if target.kind == "local" else submitit.SlurmExecutor._valid_parameters()
     for name in parameters or {}:
         if name not in allowed:
-            raise ValueError(f"cluster_parameters: {name!r} is not a parameter of submitit's {target.kind} executor; "
-                             f"allowed values: {', '.join(sorted(allowed))}")
+            raise ValueError(
+                f"cluster_parameters: {name!r} is not a parameter of submitit's {target.kind} executor; "
+                f"allowed values: {', '.join(sorted(allowed))}"
+            )
 
 
-def make_executor(target: ClusterTarget, folder: Path, devices: int,
-                  parameters: Mapping[str, Any] | None = None) -> Any:
+def make_executor(
+    target: ClusterTarget, folder: Path, devices: int, parameters: Mapping[str, Any] | None = None
+) -> Any:
     """A submitit executor for `target` whose workers have `devices` JAX CPU devices, its job logs in `folder`;
     `parameters` go to `update_parameters` (e.g. `{"account": "lab", "time": 600, "setup": ["module load
     python"]}` for Slurm)."""
@@ -115,11 +123,15 @@ def make_executor(target: ClusterTarget, folder: Path, devices: int,
         return executor  # `worker_environment` is set around each submission instead of shell lines
     executor = submitit.SlurmExecutor(folder=folder)
     # A whole node per job: its cores run the worker's devices (and XLA's threads within each).
-    executor.update_parameters(partition=target.partition, exclusive=True, nodes=1, ntasks_per_node=1,
-                               time=24 * 60, job_name="amjax-sweep")
-    exports = [f"export {name}=${{{name}:-{shlex.quote(value)}}}" if name == "JAX_COMPILATION_CACHE_DIR"
-               else f"export {name}={shlex.quote(value)}"
-               for name, value in worker_environment(Path(folder).parent, devices).items()]
+    executor.update_parameters(
+        partition=target.partition, exclusive=True, nodes=1, ntasks_per_node=1, time=24 * 60, job_name="amjax-sweep"
+    )
+    exports = [
+        f"export {name}=${{{name}:-{shlex.quote(value)}}}"
+        if name == "JAX_COMPILATION_CACHE_DIR"
+        else f"export {name}={shlex.quote(value)}"
+        for name, value in worker_environment(Path(folder).parent, devices).items()
+    ]
     executor.update_parameters(setup=[*exports, *parameters.pop("setup", ())], **parameters)
     return executor
 
@@ -131,8 +143,10 @@ def worker_environment(out: Path, devices: int) -> dict[str, str]:
       as the local run's programs (XLA's float rounding can depend on a shard's size);
     - JAX_COMPILATION_CACHE_DIR: one persistent compilation cache in `out` for every worker, so a program compiles
       once, not once per batch of its group or retry (a cache the user set is kept)."""
-    return {"JAX_NUM_CPU_DEVICES": str(int(devices)),
-            "JAX_COMPILATION_CACHE_DIR": os.environ.get("JAX_COMPILATION_CACHE_DIR", str(Path(out) / COMPILE_CACHE))}
+    return {
+        "JAX_NUM_CPU_DEVICES": str(int(devices)),
+        "JAX_COMPILATION_CACHE_DIR": os.environ.get("JAX_COMPILATION_CACHE_DIR", str(Path(out) / COMPILE_CACHE)),
+    }
 
 
 @contextlib.contextmanager
@@ -143,8 +157,9 @@ def starting_workers(variables: Mapping[str, str]) -> Iterator[None]:
     nothing is reset to the default in a child, while the driver still ignores Ctrl-C as it was told to."""
     before = {name: os.environ.get(name) for name in variables}
     os.environ.update(variables)
-    ignored = (threading.current_thread() is threading.main_thread()
-               and signal.getsignal(signal.SIGINT) is signal.SIG_IGN)
+    ignored = (
+        threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    )
     if ignored:
         signal.signal(signal.SIGINT, lambda *_: None)
     try:
@@ -173,13 +188,15 @@ def _copy_checkpoint(out: Path, part: Path, batch_name: str, config_ids: Sequenc
     atomic_write(target, lambda tmp: shutil.copyfile(source, tmp))
     rows = storage.read_table(out / "results")
     if rows is not None and rows.config_id.isin(config_ids).any():
-        storage.write_table(part / "results",
-                            storage.merge_rows(storage.read_table(part / "results"),
-                                               rows[rows.config_id.isin(config_ids)]))
+        storage.write_table(
+            part / "results",
+            storage.merge_rows(storage.read_table(part / "results"), rows[rows.config_id.isin(config_ids)]),
+        )
 
 
-def train_part(spec_json: dict[str, Any], out: str, batch_name: str, max_batch: int,
-               options: dict[str, Any]) -> dict[str, Any]:
+def train_part(
+    spec_json: dict[str, Any], out: str, batch_name: str, max_batch: int, options: dict[str, Any]
+) -> dict[str, Any]:
     """A worker's job: train batch `batch_name` of the sweep `spec_json` into its part folder, split over the
     worker's devices (`make_executor` sets how many) and resuming from the part's checkpoint. Returns where it
     ran."""
@@ -199,8 +216,13 @@ def train_part(spec_json: dict[str, Any], out: str, batch_name: str, max_batch: 
     info = {"batch": batch_name, "node": socket.gethostname(), "pid": os.getpid(), "devices": len(devices)}
     with folder_lock(part, wait=True):  # a worker left by a killed driver finishes first
         remove_partial_writes(part)
-        if storage.batch_complete(out_path, batch_name, storage.read_table(out_path / "results"),
-                                  storage.read_table(out_path / "rescored"), options["save_policies"]):
+        if storage.batch_complete(
+            out_path,
+            batch_name,
+            storage.read_table(out_path / "results"),
+            storage.read_table(out_path / "rescored"),
+            options["save_policies"],
+        ):
             return {**info, "seconds": 0.0}  # merged already
         storage.write_json(part / "worker.json", info)
         _copy_checkpoint(out_path, part, batch_name, config_ids)
@@ -208,14 +230,24 @@ def train_part(spec_json: dict[str, Any], out: str, batch_name: str, max_batch: 
         hyper_columns = sorted({k for r in runs for k in r.hyperparams})
         with tqdm(disable=True) as bar:
             runner._train_batch(
-                batch, part, storage.read_table(part / "results"), hyper_columns, bar, devices=devices,
-                wall_time=storage.WallTime(part / "wall_time.json"), rescored=storage.read_table(part / "rescored"),
-                loggers=(), on_chunk=None, **options)
+                batch,
+                part,
+                storage.read_table(part / "results"),
+                hyper_columns,
+                bar,
+                devices=devices,
+                wall_time=storage.WallTime(part / "wall_time.json"),
+                rescored=storage.read_table(part / "rescored"),
+                loggers=(),
+                on_chunk=None,
+                **options,
+            )
     return {**info, "seconds": round(time.monotonic() - start, 1)}
 
 
-def merge_part(out: Path, batch_name: str, results: pd.DataFrame | None, rescored: pd.DataFrame | None,
-               policies: bool = True) -> tuple[pd.DataFrame | None, pd.DataFrame | None, pd.DataFrame | None]:
+def merge_part(
+    out: Path, batch_name: str, results: pd.DataFrame | None, rescored: pd.DataFrame | None, policies: bool = True
+) -> tuple[pd.DataFrame | None, pd.DataFrame | None, pd.DataFrame | None]:
     """Fold the part of `batch_name` into `out`, then remove it; returns results, rescored and the rows taken from
     the part (None if none). A part is taken when it is ahead of `out`: finished (its commit marker), or
     checkpointed further than `out`'s checkpoint of the batch; and not when `out` holds the batch finished already
@@ -233,7 +265,8 @@ def merge_part(out: Path, batch_name: str, results: pd.DataFrame | None, rescore
         rows = storage.read_table(part / "results")
         marker = storage.read_marker(part, batch_name)
         ahead = marker is not None or (
-            storage.checkpoint_evals(part / checkpoint) > storage.checkpoint_evals(out / checkpoint))
+            storage.checkpoint_evals(part / checkpoint) > storage.checkpoint_evals(out / checkpoint)
+        )
         if rows is None or not ahead or storage.batch_complete(out, batch_name, results, rescored, policies):
             rows = None
         else:
@@ -256,8 +289,9 @@ def merge_part(out: Path, batch_name: str, results: pd.DataFrame | None, rescore
     return results, rescored, rows
 
 
-def merge_parts(out: Path, results: pd.DataFrame | None, rescored: pd.DataFrame | None,
-                policies: bool = True) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
+def merge_parts(
+    out: Path, results: pd.DataFrame | None, rescored: pd.DataFrame | None, policies: bool = True
+) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
     """Fold every part that no worker holds into `out` (a cluster run that was stopped); the local runner and the
     driver call this when they open a folder."""
     for part in sorted((Path(out) / PARTS).glob("*/")):
@@ -280,11 +314,22 @@ def remove_job_pickles(out: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def drive(spec: Any, out: Path, batches: Sequence[Any], results: pd.DataFrame | None,
-          rescored: pd.DataFrame | None, target: ClusterTarget, max_batch: int, num_devices: int,
-          options: dict[str, Any], bar: Any, *, parameters: Mapping[str, Any] | None = None,
-          record: Callable[[str, dict[str, Any]], None],
-          on_rows: Callable[[pd.DataFrame, pd.DataFrame], None]) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
+def drive(
+    spec: Any,
+    out: Path,
+    batches: Sequence[Any],
+    results: pd.DataFrame | None,
+    rescored: pd.DataFrame | None,
+    target: ClusterTarget,
+    max_batch: int,
+    num_devices: int,
+    options: dict[str, Any],
+    bar: Any,
+    *,
+    parameters: Mapping[str, Any] | None = None,
+    record: Callable[[str, dict[str, Any]], None],
+    on_rows: Callable[[pd.DataFrame, pd.DataFrame], None],
+) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
     """Run `batches` (those not finished in `out`) on the cluster, at most `target.workers` at once, each worker on
     `num_devices` devices (the driver's: `batches` were planned for them); fold each finished part into `out`,
     call `on_rows(new_rows, results)` and `record(batch, where_it_ran)`. A failed job is submitted again (the
@@ -301,8 +346,10 @@ def drive(spec: Any, out: Path, batches: Sequence[Any], results: pd.DataFrame | 
         """The job failed (or hung): its batch goes back to the queue, up to MAX_ATTEMPTS submissions."""
         _delete_job_files(job)
         if attempts[batch.name] >= MAX_ATTEMPTS:
-            raise ClusterError(f"cluster: batch {batch.name} failed {attempts[batch.name]} times; last error: "
-                               f"{error} (job logs in {out / LOGS})")
+            raise ClusterError(
+                f"cluster: batch {batch.name} failed {attempts[batch.name]} times; last error: "
+                f"{error} (job logs in {out / LOGS})"
+            )
         queue.insert(0, batch)
 
     try:

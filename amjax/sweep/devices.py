@@ -39,9 +39,7 @@ def shard_configs(function, devices: list[jax.Device]):
     sharding = config_sharding(devices)
     # check_vma=False: the configurations never talk to each other, so nothing varies across devices that the
     # program would need to know about (the check rejects while-loop carries that are created inside the body).
-    return jax.shard_map(
-        function, mesh=sharding.mesh, in_specs=sharding.spec, out_specs=sharding.spec, check_vma=False
-    )
+    return jax.shard_map(function, mesh=sharding.mesh, in_specs=sharding.spec, out_specs=sharding.spec, check_vma=False)
 
 
 def _mulhi(x: jax.Array, y: jax.Array) -> jax.Array:

@@ -23,8 +23,20 @@ SCHEDULE_FIELDS = ("total_timesteps", "eval_every", "eval_episodes")
 # Fields the grid itself sets.
 GRID_FIELDS = ("env_id", "cost", "vanilla")
 # Fields of the active-measure wrapper: a vanilla run (the plain env) takes none, so it is not multiplied by them.
-MEASURE_FIELDS = ("noise_std", "extra_obs", "budgeted", "budget", "reward_timing", "instruments", "instrument_costs",
-                  "instrument_noise", "measure_head", "cost_conditioned", "cost_low", "cost_high")
+MEASURE_FIELDS = (
+    "noise_std",
+    "extra_obs",
+    "budgeted",
+    "budget",
+    "reward_timing",
+    "instruments",
+    "instrument_costs",
+    "instrument_noise",
+    "measure_head",
+    "cost_conditioned",
+    "cost_low",
+    "cost_high",
+)
 
 
 @dataclass(frozen=True)
@@ -147,8 +159,10 @@ def validate_spec(spec: SweepSpec) -> None:
     for value in spec.hyperparams.values():
         size *= len(value) if isinstance(value, list) else 1
     if size > MAX_CONFIGS:
-        raise ValueError(f"the grid has {size:,} configurations; allowed: at most {MAX_CONFIGS:,} in one sweep "
-                         "(split it into several sweeps)")
+        raise ValueError(
+            f"the grid has {size:,} configurations; allowed: at most {MAX_CONFIGS:,} in one sweep "
+            "(split it into several sweeps)"
+        )
     for env_id in spec.envs:
         make_env(env_id)
     for agent in spec.agents:
@@ -168,12 +182,12 @@ def validate_spec(spec: SweepSpec) -> None:
         if scope is not None:
             check_choice(f"hyperparameter {key!r}: agent", scope, sorted(ALGORITHMS))
             if scope not in spec.agents:
-                raise ValueError(f"hyperparameter {key!r}: agent {scope!r} is not in this sweep's agents "
-                                 f"{list(spec.agents)}")
+                raise ValueError(
+                    f"hyperparameter {key!r}: agent {scope!r} is not in this sweep's agents {list(spec.agents)}"
+                )
         if name in SCHEDULE_FIELDS:
             raise ValueError(
-                f"{name} is set for the whole sweep (--steps / --eval-every / --eval-episodes), "
-                "not as a hyperparameter"
+                f"{name} is set for the whole sweep (--steps / --eval-every / --eval-episodes), not as a hyperparameter"
             )
         if name in GRID_FIELDS or name == "mode":
             raise ValueError(f"{name} is a grid axis; use its own option, not a hyperparameter")
@@ -188,8 +202,11 @@ def validate_spec(spec: SweepSpec) -> None:
     for env_id, defaults in spec.resolved_env_defaults().items():
         for key, value in defaults.items():
             name = split_hyperparam(key)[1]
-            if isinstance(value, list) or name in SCHEDULE_FIELDS + GRID_FIELDS or name not in _all_fields(
-                    sorted(ALGORITHMS)):
+            if (
+                isinstance(value, list)
+                or name in SCHEDULE_FIELDS + GRID_FIELDS
+                or name not in _all_fields(sorted(ALGORITHMS))
+            ):
                 raise ValueError(f"env_defaults[{env_id!r}][{key!r}]: allowed: one value of an agent config field")
 
 
@@ -236,8 +253,10 @@ def round_schedule(spec: SweepSpec) -> tuple[SweepSpec, str | None]:
     total, every = nearest_schedule(max(1, spec.total_timesteps), spec.eval_every, unit)
     if (total, every) == (spec.total_timesteps, spec.eval_every):
         return spec, None
-    note = (f"steps {spec.total_timesteps:,} and eval-every {spec.eval_every:,} rounded to {total:,} and {every:,}: "
-            f"whole updates of every agent (a multiple of {unit:,} env steps) and whole evaluation periods")
+    note = (
+        f"steps {spec.total_timesteps:,} and eval-every {spec.eval_every:,} rounded to {total:,} and {every:,}: "
+        f"whole updates of every agent (a multiple of {unit:,} env steps) and whole evaluation periods"
+    )
     return dataclasses.replace(spec, total_timesteps=total, eval_every=every), note
 
 
@@ -266,13 +285,29 @@ def _runs(spec: SweepSpec) -> Iterator[RunConfig]:
         plain = {key: values for key, values in own.items() if field_of[key] not in MEASURE_FIELDS}
         for vanilla, cost in settings:
             swept = plain if vanilla else own
-            yield from _setting_runs(spec, env, agent, config_type, vanilla, cost, swept, field_of,
-                                     {k: v for k, v in defaults.items() if not vanilla or k not in MEASURE_FIELDS})
+            yield from _setting_runs(
+                spec,
+                env,
+                agent,
+                config_type,
+                vanilla,
+                cost,
+                swept,
+                field_of,
+                {k: v for k, v in defaults.items() if not vanilla or k not in MEASURE_FIELDS},
+            )
 
 
 def _setting_runs(
-    spec: SweepSpec, env: str, agent: str, config_type: type, vanilla: bool, cost: float,
-    own: Mapping[str, Any], field_of: Mapping[str, str], defaults: Mapping[str, Any],
+    spec: SweepSpec,
+    env: str,
+    agent: str,
+    config_type: type,
+    vanilla: bool,
+    cost: float,
+    own: Mapping[str, Any],
+    field_of: Mapping[str, str],
+    defaults: Mapping[str, Any],
 ) -> Iterator[RunConfig]:
     """The runs of one (env, agent, vanilla, cost): every combination of `own`'s values, every seed."""
     for values, seed in itertools.product(itertools.product(*own.values()), spec.seeds):

@@ -17,8 +17,16 @@ import pandas as pd
 
 # Results columns logged as scalars (tag = column name with its first "_" turned into "/": eval/return, ...).
 METRICS = (
-    "eval_return", "eval_raw_return", "eval_measured_fraction", "eval_length", "eval_measurements",
-    "train_return", "train_raw_return", "train_length", "train_measurements", "loss",
+    "eval_return",
+    "eval_raw_return",
+    "eval_measured_fraction",
+    "eval_length",
+    "eval_measurements",
+    "train_return",
+    "train_raw_return",
+    "train_length",
+    "train_measurements",
+    "loss",
 )
 _NOT_CONFIG = {*METRICS, "env_steps", "diverged", "config_id"}
 
@@ -106,8 +114,14 @@ class WandbLogger:
             if run is None:
                 config = _run_config(group)
                 run = self._runs[config_id] = self._wandb.init(
-                    project=self.project, id=config_id, name=config_id, dir=str(self.dir), mode=self.mode,
-                    group=f"{config.get('env')}-{config.get('agent')}", config=config, reinit="create_new",
+                    project=self.project,
+                    id=config_id,
+                    name=config_id,
+                    dir=str(self.dir),
+                    mode=self.mode,
+                    group=f"{config.get('env')}-{config.get('agent')}",
+                    config=config,
+                    reinit="create_new",
                     resume="allow",
                 )
             for row in group.itertuples(index=False):

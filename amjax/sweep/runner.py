@@ -66,13 +66,15 @@ def _rescored_rows(batch: Batch, configs: Any, states: Any, programs: BatchProgr
     """Each real configuration's best policy on fresh test episodes (one row per configuration)."""
     scores = jax.device_get(programs.rescore(configs, states))
     real = len(batch.runs)
-    return pd.DataFrame({
-        "config_id": [r.config_id for r in batch.runs],
-        "best_policy_return": np.asarray(scores.costed_return)[:real],
-        "best_policy_raw_return": np.asarray(scores.raw_return)[:real],
-        "best_policy_measured_fraction": np.asarray(scores.measured_fraction)[:real],
-        "best_policy_episodes": [r.config.rescore_episodes for r in batch.runs],
-    })
+    return pd.DataFrame(
+        {
+            "config_id": [r.config_id for r in batch.runs],
+            "best_policy_return": np.asarray(scores.costed_return)[:real],
+            "best_policy_raw_return": np.asarray(scores.raw_return)[:real],
+            "best_policy_measured_fraction": np.asarray(scores.measured_fraction)[:real],
+            "best_policy_episodes": [r.config.rescore_episodes for r in batch.runs],
+        }
+    )
 
 
 def _check_memory(batches: Sequence[Batch], memory: int) -> None:
@@ -84,7 +86,8 @@ def _check_memory(batches: Sequence[Batch], memory: int) -> None:
             raise SweepTooLargeError(
                 f"the train states of {batch.size} {batch.algo.name} configurations take "
                 f"{size / 2**30:.1f} GiB (3x that while training) and this machine has {memory / 2**30:.1f} "
-                "GiB: lower --max-batch (max_batch), or the fields that size them (num_envs, buffer_size, ...)")
+                "GiB: lower --max-batch (max_batch), or the fields that size them (num_envs, buffer_size, ...)"
+            )
 
 
 _SHAPES: dict[tuple[Any, ...], tuple[Any, int]] = {}  # (agent, static fields, batch size) -> (shapes, bytes)
@@ -132,10 +135,7 @@ def _rows(batch: Batch, rows: EvalRow, hyper_columns: list[str]) -> pd.DataFrame
 
 def _group_configs(runs: Sequence[RunConfig]) -> list[dict[str, Any]]:
     """Every field of one configuration per compiled group (traced fields as in its first configuration)."""
-    return [
-        {"agent": group[0].agent, **group[0].config.to_dict()}
-        for group in group_runs(runs)
-    ]
+    return [{"agent": group[0].agent, **group[0].config.to_dict()} for group in group_runs(runs)]
 
 
 def load_sweep_policy(out: str | Path, config_id: str) -> SavedPolicy:
@@ -160,12 +160,20 @@ def _save_policies(
     )
     healthy = results[~results.diverged & results.eval_return.notna()]
     best_steps = healthy.loc[healthy.groupby("config_id").eval_return.idxmax()].set_index("config_id").env_steps
-    scores = (pd.DataFrame() if rescored is None
-              else rescored.set_index("config_id").drop(columns="best_policy_episodes", errors="ignore"))
+    scores = (
+        pd.DataFrame()
+        if rescored is None
+        else rescored.set_index("config_id").drop(columns="best_policy_episodes", errors="ignore")
+    )
     for i, run in enumerate(batch.runs):
         info = {
-            "config_id": run.config_id, "env": run.env, "agent": run.agent, "vanilla": run.vanilla,
-            "cost": run.cost, "seed": run.seed, "best_return": float(best_return[i]),
+            "config_id": run.config_id,
+            "env": run.env,
+            "agent": run.agent,
+            "vanilla": run.vanilla,
+            "cost": run.cost,
+            "seed": run.seed,
+            "best_return": float(best_return[i]),
             "best_measured_fraction": float(best_fraction[i]),
             "best_env_steps": int(best_steps.get(run.config_id, 0)),
             "trained_env_steps": evals_done * run.config.eval_every,
@@ -194,7 +202,8 @@ def _check_folder(out: Path, spec: SweepSpec, compare: bool = True) -> bool:
         stored = SweepSpec.from_json(stored) if stored is not None else None
     except (ValueError, TypeError, AttributeError) as error:
         raise SweepMismatchError(
-            f"out: {meta_path} is not a sweep's metadata ({error}); choose another folder") from None
+            f"out: {meta_path} is not a sweep's metadata ({error}); choose another folder"
+        ) from None
     if compare and (stored is None or stored.to_json() != spec.to_json()):  # older files: defaults filled
         raise SweepMismatchError(f"out: {out} holds a different sweep (see its metadata.json); choose another folder")
     return True
@@ -296,8 +305,16 @@ def _train_batch(
             return _rescored_rows(batch, configs, states, programs)
 
         # The re-scoring overlaps the last checkpoint's write; the commit waits for it.
-        rescored = _finish_batch(out, batch, _real(batch, states), results, rescored, save_policies, rescore,
-                                 wait=lambda: pending is None or pending.result())
+        rescored = _finish_batch(
+            out,
+            batch,
+            _real(batch, states),
+            results,
+            rescored,
+            save_policies,
+            rescore,
+            wait=lambda: pending is None or pending.result(),
+        )
         bar.set_description(label)
     return results, rescored
 
@@ -324,8 +341,9 @@ def _finish_batch(
     if save_policies:
         _save_policies(out, batch, states, config0.num_evals, results, rescored[rescored.config_id.isin(ids)])
     wait()
-    storage.write_marker(out, storage.batch_marker(batch.name, ids, config0.num_evals, config0.eval_every,
-                                                   save_policies))
+    storage.write_marker(
+        out, storage.batch_marker(batch.name, ids, config0.num_evals, config0.eval_every, save_policies)
+    )
     return rescored
 
 
@@ -339,21 +357,25 @@ COMMIT = "commit"  # trained, checkpointed and re-scored (killed before its comm
 TRAIN = "train"  # train (or resume), re-score and commit: its programs are compiled
 
 
-def _batch_state(out: Path, batch: Batch, results: pd.DataFrame | None, rescored: pd.DataFrame | None,
-                 save_policies: bool) -> str:
+def _batch_state(
+    out: Path, batch: Batch, results: pd.DataFrame | None, rescored: pd.DataFrame | None, save_policies: bool
+) -> str:
     """DONE, COMMIT or TRAIN for `batch` in `out`; a marker whose files are not all there counts as none."""
     if storage.batch_complete(out, batch.name, results, rescored, save_policies):
         return DONE
     num_evals = batch.runs[0].config.num_evals
-    if (storage.checkpoint_evals(storage.checkpoint_path(out, batch.name)) == num_evals
-            and _evals_with_rows(batch, results) >= num_evals
-            and storage.all_rescored(rescored, (run.config_id for run in batch.runs))):
+    if (
+        storage.checkpoint_evals(storage.checkpoint_path(out, batch.name)) == num_evals
+        and _evals_with_rows(batch, results) >= num_evals
+        and storage.all_rescored(rescored, (run.config_id for run in batch.runs))
+    ):
         return COMMIT
     return TRAIN
 
 
-def _commit_trained(out: Path, batch: Batch, results: pd.DataFrame, rescored: pd.DataFrame,
-                    save_policies: bool) -> None:
+def _commit_trained(
+    out: Path, batch: Batch, results: pd.DataFrame, rescored: pd.DataFrame, save_policies: bool
+) -> None:
     """Commit a COMMIT batch from its final checkpoint (sized with `jax.eval_shape`: nothing compiles)."""
     shapes = _state_shapes(batch)[0]
     real = jax.tree.map(lambda x: jax.ShapeDtypeStruct((len(batch.runs), *x.shape[1:]), x.dtype), shapes)
@@ -395,14 +417,24 @@ class CompileQueue:
             future = self._futures.pop((batch.name, target_chunks, devices))
         return future.result()
 
-    def queue_sweep(self, spec: SweepSpec, out: str | Path, *, max_batch: int = 1024, target_chunks: int = 10,
-                    devices: Sequence[jax.Device] | None = None) -> None:
+    def queue_sweep(
+        self,
+        spec: SweepSpec,
+        out: str | Path,
+        *,
+        max_batch: int = 1024,
+        target_chunks: int = 10,
+        devices: Sequence[jax.Device] | None = None,
+    ) -> None:
         """Queue the batches `run_sweep(spec, out, ...)` with these arguments would train (those not finished in
         `out`), in its order."""
         devices = tuple(devices or sweep_devices())
         out = Path(out)
-        results, rescored = ((storage.read_table(out / "results"), storage.read_table(out / "rescored"))
-                             if out.is_dir() else (None, None))
+        results, rescored = (
+            (storage.read_table(out / "results"), storage.read_table(out / "rescored"))
+            if out.is_dir()
+            else (None, None)
+        )
         for batch in plan_batches(expand(spec), max_batch, len(devices)):
             if _batch_state(out, batch, results, rescored, save_policies=True) == TRAIN:
                 self.submit(batch, target_chunks, devices)
@@ -507,8 +539,9 @@ def run_sweep(
         wall_time = storage.WallTime(out / "wall_time.json")
         # Parts a cluster run left (stopped before it folded them in): their rows and checkpoints, so either
         # runner resumes where the other stopped.
-        results, rescored = merge_parts(out, storage.read_table(out / "results"), storage.read_table(out / "rescored"),
-                                        save_policies)
+        results, rescored = merge_parts(
+            out, storage.read_table(out / "results"), storage.read_table(out / "rescored"), save_policies
+        )
         total_steps = len(runs) * spec.total_timesteps
         bar = tqdm(total=total_steps, unit="step", unit_scale=True, disable=not progress, desc="sweep")
         try:
@@ -517,8 +550,13 @@ def run_sweep(
                 if state == COMMIT:  # killed between its re-scoring and its commit
                     _commit_trained(out, batch, results, rescored, save_policies)
             todo = [batch for batch, state in zip(batches, states, strict=True) if state == TRAIN]
-            bar.update(sum(len(b.runs) * b.runs[0].config.num_evals * b.runs[0].config.eval_every
-                           for b in batches if b not in todo))
+            bar.update(
+                sum(
+                    len(b.runs) * b.runs[0].config.num_evals * b.runs[0].config.eval_every
+                    for b in batches
+                    if b not in todo
+                )
+            )
             if target is None:
                 # Every batch's programs compile in turn on a background thread while batches train (a compile
                 # keeps about one core busy); the training thread compiles nothing meanwhile.
@@ -527,18 +565,30 @@ def run_sweep(
                     compiler.submit(batch, target_chunks, devices)
                 try:
                     for batch in todo:
-                        bar.set_description(f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs), "
-                                            "compiling")
+                        bar.set_description(
+                            f"{batch.runs[0].env} {batch.algo.name} ({len(batch.runs)} configs), compiling"
+                        )
                         results, rescored = _train_batch(
-                            batch, out, results, hyper_columns, bar, target_chunks=target_chunks,
-                            checkpoint_every_s=checkpoint_every_s, save_policies=save_policies, on_chunk=on_chunk,
-                            loggers=loggers, devices=devices, wall_time=wall_time, rescored=rescored,
+                            batch,
+                            out,
+                            results,
+                            hyper_columns,
+                            bar,
+                            target_chunks=target_chunks,
+                            checkpoint_every_s=checkpoint_every_s,
+                            save_policies=save_policies,
+                            on_chunk=on_chunk,
+                            loggers=loggers,
+                            devices=devices,
+                            wall_time=wall_time,
+                            rescored=rescored,
                             programs=compiler.take(batch, target_chunks, devices),
                         )
                 finally:
                     if compile_queue is None:
                         compiler.cancel()
             else:
+
                 def on_rows(rows: pd.DataFrame, results: pd.DataFrame) -> None:  # a batch folded in
                     wall_time.save()
                     for logger in loggers:
@@ -546,11 +596,26 @@ def run_sweep(
                     if on_chunk is not None:
                         on_chunk(results)
 
-                options = {"target_chunks": target_chunks, "checkpoint_every_s": checkpoint_every_s,
-                           "save_policies": save_policies}
-                results, rescored = drive(spec, out, todo, results, rescored, target, max_batch, len(devices),
-                                          options, bar, parameters=cluster_parameters, on_rows=on_rows,
-                                          record=functools.partial(_record_batch, out))
+                options = {
+                    "target_chunks": target_chunks,
+                    "checkpoint_every_s": checkpoint_every_s,
+                    "save_policies": save_policies,
+                }
+                results, rescored = drive(
+                    spec,
+                    out,
+                    todo,
+                    results,
+                    rescored,
+                    target,
+                    max_batch,
+                    len(devices),
+                    options,
+                    bar,
+                    parameters=cluster_parameters,
+                    on_rows=on_rows,
+                    record=functools.partial(_record_batch, out),
+                )
         finally:
             bar.close()
             for logger in loggers:

@@ -131,12 +131,18 @@ def marker_path(folder: Path, batch_name: str) -> Path:
     return Path(folder) / "finished" / f"{batch_name}.json"
 
 
-def batch_marker(batch_name: str, config_ids: Iterable[str], evals: int, eval_every: int,
-                 policies: bool) -> dict[str, Any]:
+def batch_marker(
+    batch_name: str, config_ids: Iterable[str], evals: int, eval_every: int, policies: bool
+) -> dict[str, Any]:
     """What a batch's commit marker records: the batch, its configurations and evaluations, whether its policies
     were saved."""
-    return {"batch": batch_name, "config_ids": sorted(config_ids), "evals": int(evals), "eval_every": int(eval_every),
-            "policies": bool(policies)}
+    return {
+        "batch": batch_name,
+        "config_ids": sorted(config_ids),
+        "evals": int(evals),
+        "eval_every": int(eval_every),
+        "policies": bool(policies),
+    }
 
 
 def write_marker(folder: Path, marker: dict[str, Any]) -> None:
@@ -153,25 +159,29 @@ def read_marker(folder: Path, batch_name: str) -> dict[str, Any] | None:
         return None
 
 
-def batch_complete(folder: Path, batch_name: str, results: pd.DataFrame | None, rescored: pd.DataFrame | None,
-                   policies: bool) -> bool:
+def batch_complete(
+    folder: Path, batch_name: str, results: pd.DataFrame | None, rescored: pd.DataFrame | None, policies: bool
+) -> bool:
     """Whether `folder` holds batch `batch_name` finished: its marker, and every file the marker vouches for
     (`marker_files_present`)."""
     marker = read_marker(folder, batch_name)
     return marker is not None and marker_files_present(folder, marker, results, rescored, policies)
 
 
-def marker_files_present(folder: Path, marker: dict[str, Any], results: pd.DataFrame | None,
-                         rescored: pd.DataFrame | None, policies: bool) -> bool:
+def marker_files_present(
+    folder: Path, marker: dict[str, Any], results: pd.DataFrame | None, rescored: pd.DataFrame | None, policies: bool
+) -> bool:
     """Whether `folder` has everything a batch's marker vouches for: the rows of every evaluation, the re-scores,
     the final checkpoint and (with `policies`, which the marker must also say were saved) each configuration's
     policy."""
     config_ids = marker["config_ids"]
-    return ((marker["policies"] or not policies)
-            and evals_with_rows(results, config_ids, marker["eval_every"]) >= marker["evals"]
-            and all_rescored(rescored, config_ids)
-            and checkpoint_evals(checkpoint_path(folder, marker["batch"])) == marker["evals"]
-            and (not policies or all(policy_path(folder, c).exists() for c in config_ids)))
+    return (
+        (marker["policies"] or not policies)
+        and evals_with_rows(results, config_ids, marker["eval_every"]) >= marker["evals"]
+        and all_rescored(rescored, config_ids)
+        and checkpoint_evals(checkpoint_path(folder, marker["batch"])) == marker["evals"]
+        and (not policies or all(policy_path(folder, c).exists() for c in config_ids))
+    )
 
 
 def policy_path(folder: str | Path, config_id: str) -> Path:
@@ -217,7 +227,8 @@ def load_checkpoint(path: Path, like: Any) -> tuple[Any, int]:
         evals_done = int(payload["evals_done"])
     except Exception as error:  # corrupt or truncated file
         raise UnreadableFileError(
-            f"checkpoint {path} is unreadable ({error}); delete it to restart that batch") from None
+            f"checkpoint {path} is unreadable ({error}); delete it to restart that batch"
+        ) from None
     leaves, treedef = jax.tree.flatten(like)  # arrays, or their shapes (`jax.eval_shape`)
     if len(stored) != len(leaves) or any(
         s.shape != np.shape(x) or s.dtype != (x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype)
@@ -239,13 +250,16 @@ def environment_info() -> dict[str, Any]:
         except metadata.PackageNotFoundError:
             versions[name] = None
     try:
-        revision = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).parent,
-            timeout=5,
-        ).stdout.strip() or None
+        revision = (
+            subprocess.run(
+                ["git", "rev-parse", "HEAD"],
+                capture_output=True,
+                text=True,
+                cwd=Path(__file__).parent,
+                timeout=5,
+            ).stdout.strip()
+            or None
+        )
     except (OSError, subprocess.SubprocessError):
         revision = None
     return {
@@ -263,8 +277,12 @@ def environment_info() -> dict[str, Any]:
 ID_COLUMNS = ["config_id", "env", "agent", "vanilla", "cost", "seed"]
 
 
-RESCORED_COLUMNS = ["best_policy_return", "best_policy_raw_return", "best_policy_measured_fraction",
-                    "best_policy_episodes"]
+RESCORED_COLUMNS = [
+    "best_policy_return",
+    "best_policy_raw_return",
+    "best_policy_measured_fraction",
+    "best_policy_episodes",
+]
 
 
 def summarize(results: pd.DataFrame, hyper_columns: list[str], rescored: pd.DataFrame | None = None) -> pd.DataFrame:

@@ -187,9 +187,7 @@ class ActiveMeasure(GymnaxWrapper):
                 f"env: the active-measure wrapper needs a Discrete or Box action space, got "
                 f"{type(self._inner_action_space).__name__}; allowed: Discrete, Box"
             )
-        if isinstance(self._inner_action_space, spaces.Box) and len(
-            self._inner_action_space.shape
-        ) > 1:
+        if isinstance(self._inner_action_space, spaces.Box) and len(self._inner_action_space.shape) > 1:
             raise TypeError("env: a Box action space must be 1-D to gain a measure dimension")
         obs_space = env.observation_space(env_params)
         if not isinstance(obs_space, spaces.Box):
@@ -392,9 +390,7 @@ class ActiveMeasure(GymnaxWrapper):
         return jnp.concatenate([obs, *features])
 
     @partial(jax.jit, static_argnames=("self",))
-    def reset(
-        self, key: jax.Array, params: MeasureParams | None = None
-    ) -> tuple[jax.Array, MeasureState]:
+    def reset(self, key: jax.Array, params: MeasureParams | None = None) -> tuple[jax.Array, MeasureState]:
         params = self.default_params if params is None else params
         obs, env_state = self._env.reset(key, params.env_params)
         obs = jnp.asarray(obs, jnp.float32)
@@ -506,16 +502,21 @@ def check_measure_setup(vanilla: Any, mode: Any, noise_std: Any, options: dict[s
     std = None if noise_std is None or traced else check_real("noise_std", noise_std, low=0.0)
     std_set = std is not None and bool(std.any())
     if vanilla:
-        given = [name for name, on in (("mode", mode != "last"), ("noise_std", std_set), *(options or {}).items())
-                 if on]
+        given = [
+            name for name, on in (("mode", mode != "last"), ("noise_std", std_set), *(options or {}).items()) if on
+        ]
         if given:
-            raise ValueError(f"vanilla: a vanilla run is the plain env and never hides a state, so it takes no "
-                             f"{', '.join(given)}; allowed: vanilla=False, or those left at their defaults (mode "
-                             "'last', no noise_std, no measurement options)")
+            raise ValueError(
+                f"vanilla: a vanilla run is the plain env and never hides a state, so it takes no "
+                f"{', '.join(given)}; allowed: vanilla=False, or those left at their defaults (mode "
+                "'last', no noise_std, no measurement options)"
+            )
         return
     if mode == "noisy" and not traced and (std is None or not bool((std > 0).all())):
-        raise ValueError(f"noise_std: mode 'noisy' needs noise_std, finite numbers > 0 (got {noise_std!r}; 0 shows the "
-                         "true state unmeasured)")
+        raise ValueError(
+            f"noise_std: mode 'noisy' needs noise_std, finite numbers > 0 (got {noise_std!r}; 0 shows the "
+            "true state unmeasured)"
+        )
     if mode != "noisy" and std_set:
         raise ValueError(f"noise_std: only used with mode 'noisy' (mode is {mode!r}); allowed here: 0 or None")
 
@@ -523,8 +524,10 @@ def check_measure_setup(vanilla: Any, mode: Any, noise_std: Any, options: dict[s
 def check_extra_obs(extra_obs: Any) -> tuple[str, ...]:
     """`extra_obs` as a tuple of distinct names from `EXTRA_OBS`; ValueError naming the allowed ones otherwise."""
     if isinstance(extra_obs, str) or not isinstance(extra_obs, tuple | list):
-        raise ValueError(f"extra_obs: got {extra_obs!r}; allowed values: a tuple of names from {EXTRA_OBS}, "
-                         "e.g. ('since_measured',), or ()")
+        raise ValueError(
+            f"extra_obs: got {extra_obs!r}; allowed values: a tuple of names from {EXTRA_OBS}, "
+            "e.g. ('since_measured',), or ()"
+        )
     for name in extra_obs:
         check_choice("extra_obs", name, EXTRA_OBS)
     if len(set(extra_obs)) != len(extra_obs):

@@ -65,9 +65,7 @@ class EpisodeStats(GymnaxWrapper):
     def step(
         self, key: jax.Array, state: EpisodeStatsState, action: jax.Array, params: Any = None
     ) -> tuple[jax.Array, EpisodeStatsState, jax.Array, jax.Array, jax.Array, dict[str, Any]]:
-        obs, env_state, reward, terminated, truncated, info = self._env.step(
-            key, state.env_state, action, params
-        )
+        obs, env_state, reward, terminated, truncated, info = self._env.step(key, state.env_state, action, params)
         done = jnp.logical_or(terminated, truncated)
         totals = EpisodeMetrics(
             costed_return=state.totals.costed_return + reward,

@@ -168,8 +168,10 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         self.budget = None if budget is None else _one_number("budget", check_whole_number("budget", budget))
         self._horizon = env.spec.max_episode_steps if env.spec is not None else None
         if "since_measured" in self.extra_obs and not self._horizon:
-            raise ValueError("extra_obs: 'since_measured' scales by the episode's time limit, and this env has "
-                             "none (env.spec.max_episode_steps); wrap it in gymnasium's TimeLimit first")
+            raise ValueError(
+                "extra_obs: 'since_measured' scales by the episode's time limit, and this env has "
+                "none (env.spec.max_episode_steps); wrap it in gymnasium's TimeLimit first"
+            )
         inner_action = env.action_space
         inner_obs = env.observation_space
         if not isinstance(inner_obs, gym_spaces.Box):
@@ -513,8 +515,9 @@ class GymnasiumEnv(gymnasium.Env[Any, Any]):
         try:
             self._params_layout.check(params)
         except ValueError as error:
-            raise ValueError(f"params: new params must have the structure, shapes and dtypes of the env's params "
-                             f"({error})") from None
+            raise ValueError(
+                f"params: new params must have the structure, shapes and dtypes of the env's params ({error})"
+            ) from None
         self._params = jax.device_put(params)
         self._params_words = _pack_params(self._params_layout, self._params)  # what the programs take
 

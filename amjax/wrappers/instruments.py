@@ -41,8 +41,10 @@ MAX_INSTRUMENTS = 8  # the joint Discrete space grows as 2^k
 def default_instruments(env_id: str) -> tuple[tuple[int, ...], ...]:
     """The env's default instruments (observation indices); ValueError naming the envs that have some."""
     if env_id not in DEFAULT_INSTRUMENTS:
-        raise ValueError(f"instruments: {env_id} has no default instruments; allowed: 'default' for "
-                         f"{', '.join(DEFAULT_INSTRUMENTS)}, or a tuple of index tuples such as ((0, 1), (2, 3))")
+        raise ValueError(
+            f"instruments: {env_id} has no default instruments; allowed: 'default' for "
+            f"{', '.join(DEFAULT_INSTRUMENTS)}, or a tuple of index tuples such as ((0, 1), (2, 3))"
+        )
     return tuple(features for _, features in DEFAULT_INSTRUMENTS[env_id])
 
 
@@ -62,24 +64,33 @@ def check_instruments(instruments: Any, obs_size: int) -> tuple[tuple[int, ...],
     (the paper's single switch); ValueError naming the problem otherwise."""
     example = "e.g. ((0, 1), (2, 3)) for CartPole's cart and pole, 'default', or () for the paper's single switch"
     if isinstance(instruments, str) or not isinstance(instruments, tuple | list):
-        raise ValueError(f"instruments: got {instruments!r}; allowed values: a tuple of tuples of observation "
-                         f"indices, {example}")
+        raise ValueError(
+            f"instruments: got {instruments!r}; allowed values: a tuple of tuples of observation indices, {example}"
+        )
     if not instruments:
         return ()
     if len(instruments) > MAX_INSTRUMENTS:
-        raise ValueError(f"instruments: {len(instruments)} instruments; at most {MAX_INSTRUMENTS} (the joint "
-                         "action space grows as 2^k)")
+        raise ValueError(
+            f"instruments: {len(instruments)} instruments; at most {MAX_INSTRUMENTS} (the joint "
+            "action space grows as 2^k)"
+        )
     result = []
     for group in instruments:
-        if (not isinstance(group, tuple | list) or not group
-                or not all(isinstance(i, int | np.integer) and not isinstance(i, bool) for i in group)):
-            raise ValueError(f"instruments: each instrument is a non-empty tuple of observation indices, got "
-                             f"{group!r}; {example}")
+        if (
+            not isinstance(group, tuple | list)
+            or not group
+            or not all(isinstance(i, int | np.integer) and not isinstance(i, bool) for i in group)
+        ):
+            raise ValueError(
+                f"instruments: each instrument is a non-empty tuple of observation indices, got {group!r}; {example}"
+            )
         result.append(tuple(int(i) for i in group))
     flat = sorted(i for group in result for i in group)
     if flat != list(range(obs_size)):
-        raise ValueError(f"instruments: {tuple(result)} must hold each observation index 0..{obs_size - 1} exactly "
-                         f"once (the observation has {obs_size} features)")
+        raise ValueError(
+            f"instruments: {tuple(result)} must hold each observation index 0..{obs_size - 1} exactly "
+            f"once (the observation has {obs_size} features)"
+        )
     return tuple(result)
 
 
@@ -91,8 +102,9 @@ def check_instrument_values(name: str, value: Any, num_instruments: int, batched
     array = check_real(name, value, low=0.0)
     if (array.shape[-1:] if batched else array.shape) != (num_instruments,):
         vmap = " (a last axis of that length; leading axes to vmap over)" if batched else ""
-        raise ValueError(f"{name}: got shape {array.shape}; allowed: one number per instrument, {num_instruments} "
-                         f"of them{vmap}")
+        raise ValueError(
+            f"{name}: got shape {array.shape}; allowed: one number per instrument, {num_instruments} of them{vmap}"
+        )
     return array
 
 

@@ -24,59 +24,98 @@ def _add_case_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--child", help=argparse.SUPPRESS)
     parser.add_argument("--agents", default="ppo,dqn", help="comma-separated: ppo, dqn (default: both)")
     parser.add_argument("--sizes", default=None, help="configurations per case (default 1,16,256,1024; quick 1,4)")
-    parser.add_argument("--impls", default="amjax,amjax-vanilla,reference",
-                        help=f"comma-separated, from {', '.join(cases.IMPLS)} (default: the first three)")
-    parser.add_argument("--steps", default=None,
-                        help="env steps per config: one number for every size, or size:steps pairs "
-                        "(1:204800,16:51200); rounded to a multiple of evals x steps per update "
-                        "(default: min(max, max(min, budget / configs)), see STEP_RULES)")
-    parser.add_argument("--cores", type=int, default=None,
-                        help="CPU devices amjax spreads its configurations over (default: one per usable core, "
-                        "as amjax does; the plain reference always runs as written, on one device)")
+    parser.add_argument(
+        "--impls",
+        default="amjax,amjax-vanilla,reference",
+        help=f"comma-separated, from {', '.join(cases.IMPLS)} (default: the first three)",
+    )
+    parser.add_argument(
+        "--steps",
+        default=None,
+        help="env steps per config: one number for every size, or size:steps pairs "
+        "(1:204800,16:51200); rounded to a multiple of evals x steps per update "
+        "(default: min(max, max(min, budget / configs)), see STEP_RULES)",
+    )
+    parser.add_argument(
+        "--cores",
+        type=int,
+        default=None,
+        help="CPU devices amjax spreads its configurations over (default: one per usable core, "
+        "as amjax does; the plain reference always runs as written, on one device)",
+    )
     parser.add_argument("--evals", type=int, default=5, help="evaluations per run (default 5)")
     parser.add_argument("--eval-episodes", type=int, default=10, help="test episodes per evaluation (default 10)")
     parser.add_argument("--target-chunks", type=int, default=10, help="the sweep runner's target_chunks (default 10)")
     parser.add_argument("--no-reference-eval", action="store_true", help="the plain reference skips evaluation")
-    parser.add_argument("--repeats", type=int, default=1,
-                        help="run each compiled case this many times and keep the fastest (default 1; use 3 on a "
-                        "busy machine)")
-    parser.add_argument("--buffer", type=int, default=None,
-                        help="DQN buffer per config for every size (default: min(DQNConfig's buffer_size, steps "
-                        "per config))")
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="run each compiled case this many times and keep the fastest (default 1; use 3 on a busy machine)",
+    )
+    parser.add_argument(
+        "--buffer",
+        type=int,
+        default=None,
+        help="DQN buffer per config for every size (default: min(DQNConfig's buffer_size, steps per config))",
+    )
 
 
 def _add_sb3_arguments(parser: argparse.ArgumentParser) -> None:
     """The Stable-Baselines3 rows."""
-    parser.add_argument("--sb3", dest="sb3", action="store_true", default=None,
-                        help="SB3 rows (default: if stable_baselines3 is importable)")
+    parser.add_argument(
+        "--sb3",
+        dest="sb3",
+        action="store_true",
+        default=None,
+        help="SB3 rows (default: if stable_baselines3 is importable)",
+    )
     parser.add_argument("--no-sb3", dest="sb3", action="store_false")
     parser.add_argument("--sb3-steps", type=int, default=None, help="env steps for the SB3 rows (default 20,000)")
-    parser.add_argument("--sb3-configs", type=int, default=None,
-                        help="amjax configs with SB3's DQN hyperparameters (default 64)")
-    parser.add_argument("--sb3-threads", type=int, default=1,
-                        help="torch threads for SB3 (default 1: faster for these small networks; 2 threads on a "
-                        "busy 2-core machine ran 20x slower)")
-    parser.add_argument("--sb3-buffer", type=int, default=cases.SB3_DQN["buffer_size"],
-                        help="buffer per config for that case (default SB3's 1,000,000)")
+    parser.add_argument(
+        "--sb3-configs", type=int, default=None, help="amjax configs with SB3's DQN hyperparameters (default 64)"
+    )
+    parser.add_argument(
+        "--sb3-threads",
+        type=int,
+        default=1,
+        help="torch threads for SB3 (default 1: faster for these small networks; 2 threads on a "
+        "busy 2-core machine ran 20x slower)",
+    )
+    parser.add_argument(
+        "--sb3-buffer",
+        type=int,
+        default=cases.SB3_DQN["buffer_size"],
+        help="buffer per config for that case (default SB3's 1,000,000)",
+    )
 
 
 def _add_extra_arguments(parser: argparse.ArgumentParser) -> None:
     """The buffer scan and the interleaved wrapper overhead."""
-    parser.add_argument("--buffer-scan", default="",
-                        help="also time amjax DQN at these buffer sizes (e.g. 1000,10000,100000) to see whether the "
-                        "step cost grows with capacity")
+    parser.add_argument(
+        "--buffer-scan",
+        default="",
+        help="also time amjax DQN at these buffer sizes (e.g. 1000,10000,100000) to see whether the "
+        "step cost grows with capacity",
+    )
     parser.add_argument("--buffer-scan-configs", type=int, default=16)
-    parser.add_argument("--overhead", default=None,
-                        help="configuration counts at which to time the wrapper's overhead with the active-measure "
-                        "and vanilla programs interleaved in one process, training only (default 256; quick 4; '' "
-                        "skips)")
+    parser.add_argument(
+        "--overhead",
+        default=None,
+        help="configuration counts at which to time the wrapper's overhead with the active-measure "
+        "and vanilla programs interleaved in one process, training only (default 256; quick 4; '' "
+        "skips)",
+    )
     parser.add_argument("--overhead-rounds", type=int, default=6, help="timed runs of each program (default 6)")
     parser.add_argument("--buffer-scan-steps", type=int, default=20_000)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.throughput", description=package.__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.throughput",
+        description=package.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     _add_case_arguments(parser)
     _add_sb3_arguments(parser)
     _add_extra_arguments(parser)

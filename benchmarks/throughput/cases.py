@@ -146,8 +146,14 @@ def _table_cases(args: argparse.Namespace) -> list[dict[str, Any]]:
         for size in args.sizes:
             steps = _size_steps(args, agent, size)
             for impl in args.impls:
-                case = {"impl": impl, "agent": agent, "configs": size, "steps": steps,
-                        "vanilla": impl.endswith("vanilla"), **_common(args)}
+                case = {
+                    "impl": impl,
+                    "agent": agent,
+                    "configs": size,
+                    "steps": steps,
+                    "vanilla": impl.endswith("vanilla"),
+                    **_common(args),
+                }
                 if agent == "dqn":
                     case["buffer"] = args.buffer or _default_buffer(steps, _steps_per_update(agent))
                 cases.append(case)
@@ -161,13 +167,31 @@ def _sb3_cases(args: argparse.Namespace) -> list[dict[str, Any]]:
     common, cases = _common(args), []
     if "dqn" in args.agents:
         steps = _round_steps(args.sb3_steps, args.evals * _steps_per_update("dqn", "sb3"))
-        cases.append({"impl": "sb3", "agent": "dqn", "configs": 1, "steps": steps, "vanilla": True,
-                      "buffer": SB3_DQN["buffer_size"], **common})
-        cases.append({"impl": "amjax-sb3", "agent": "dqn", "configs": args.sb3_configs, "steps": steps,
-                      "vanilla": False, "hparams": "sb3", "buffer": args.sb3_buffer, **common})
+        cases.append(
+            {
+                "impl": "sb3",
+                "agent": "dqn",
+                "configs": 1,
+                "steps": steps,
+                "vanilla": True,
+                "buffer": SB3_DQN["buffer_size"],
+                **common,
+            }
+        )
+        cases.append(
+            {
+                "impl": "amjax-sb3",
+                "agent": "dqn",
+                "configs": args.sb3_configs,
+                "steps": steps,
+                "vanilla": False,
+                "hparams": "sb3",
+                "buffer": args.sb3_buffer,
+                **common,
+            }
+        )
     if "ppo" in args.agents:
-        cases.append({"impl": "sb3", "agent": "ppo", "configs": 1, "steps": args.sb3_steps, "vanilla": True,
-                      **common})
+        cases.append({"impl": "sb3", "agent": "ppo", "configs": 1, "steps": args.sb3_steps, "vanilla": True, **common})
     return cases
 
 
@@ -178,8 +202,14 @@ def _overhead_cases(args: argparse.Namespace) -> list[dict[str, Any]]:
     for agent in args.agents:
         for size in args.overhead:
             steps = _round_steps(_budget_steps(rules[agent], size), _steps_per_update(agent))
-            case = {"impl": "overhead", "agent": agent, "configs": size, "steps": steps, "vanilla": False,
-                    **_common(args)}
+            case = {
+                "impl": "overhead",
+                "agent": agent,
+                "configs": size,
+                "steps": steps,
+                "vanilla": False,
+                **_common(args),
+            }
             # Training only: one evaluation of one episode at the end, so the env and the learner are what is timed.
             case.update(evals=1, eval_episodes=1, repeats=args.overhead_rounds)
             if agent == "dqn":
@@ -192,8 +222,15 @@ def _buffer_scan_cases(args: argparse.Namespace) -> list[dict[str, Any]]:
     """amjax DQN at each --buffer-scan capacity."""
     steps = _round_steps(args.buffer_scan_steps, args.evals * _steps_per_update("dqn")) if args.buffer_scan else 0
     return [
-        {"impl": "amjax-buffer", "agent": "dqn", "configs": args.buffer_scan_configs, "steps": steps,
-         "vanilla": False, "buffer": _round_steps(buffer, _steps_per_update("dqn")), **_common(args)}
+        {
+            "impl": "amjax-buffer",
+            "agent": "dqn",
+            "configs": args.buffer_scan_configs,
+            "steps": steps,
+            "vanilla": False,
+            "buffer": _round_steps(buffer, _steps_per_update("dqn")),
+            **_common(args),
+        }
         for buffer in args.buffer_scan
     ]
 

@@ -324,9 +324,7 @@ def _run_figures(args: argparse.Namespace, results: list[dict[str, Any]]) -> dic
     }
 
 
-def note_values(
-    args: argparse.Namespace, results: list[dict[str, Any]], fragments: dict[str, str]
-) -> dict[str, Any]:
+def note_values(args: argparse.Namespace, results: list[dict[str, Any]], fragments: dict[str, str]) -> dict[str, Any]:
     """Every placeholder of notes.md, the fragments that apply included."""
     from amjax.agents import DQNConfig
 

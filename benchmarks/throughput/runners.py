@@ -63,8 +63,9 @@ def _compile_amjax(case: dict[str, Any]) -> SweepPrograms:
     chunk_compiled = chunk.lower(sharded_configs, first_states).compile()
     compile_s += time.perf_counter() - start
     chunks = configs[0].num_evals // evals_per_chunk
-    return SweepPrograms(init_compiled, chunk_compiled, stacked, keys, sharding, sharded_configs, chunks, len(devices),
-                         compile_s)
+    return SweepPrograms(
+        init_compiled, chunk_compiled, stacked, keys, sharding, sharded_configs, chunks, len(devices), compile_s
+    )
 
 
 def build_amjax(case: dict[str, Any]) -> dict[str, Any]:

@@ -45,8 +45,9 @@ TINY = {
     ),
 }
 # Box control (a Gaussian torque and a Bernoulli measuring choice) on gymnax's Pendulum-v1.
-TINY["ppo-box"] = PPOConfig(env_id="Pendulum-v1", total_timesteps=2048, eval_every=1024, num_envs=4, num_steps=64,
-                            eval_episodes=2, hidden=(16,))
+TINY["ppo-box"] = PPOConfig(
+    env_id="Pendulum-v1", total_timesteps=2048, eval_every=1024, num_envs=4, num_steps=64, eval_episodes=2, hidden=(16,)
+)
 ALGOS = {"ppo": PPO, "dqn": DQN, "ppo-box": PPO}
 
 
@@ -220,8 +221,10 @@ def test_cost_conditioned_runs(name):
     saved = SavedPolicy(agent_of(config), config, states[0].best_params)
     act, carry = saved.policy(num_envs=256)
     obs = jax.random.uniform(jax.random.key(0), (256, 6), minval=-0.2, maxval=0.2).at[:, 4].set(0.0)  # stale
-    actions = [np.asarray(act(EnvBatch(obs.at[:, -1].set(seen), None, jnp.ones(256, bool)), carry,
-                              jax.random.key(1))[0]) for seen in (-1.0, 1.0)]
+    actions = [
+        np.asarray(act(EnvBatch(obs.at[:, -1].set(seen), None, jnp.ones(256, bool)), carry, jax.random.key(1))[0])
+        for seen in (-1.0, 1.0)
+    ]
     assert np.any(actions[0] != actions[1]), "the action ignores the cost input"
     free, dear = (saved.evaluate(jax.random.key(2), 4, cost=c) for c in (0.0, 1.0))
     assert free["costed_return"] == pytest.approx(free["raw_return"])
@@ -321,8 +324,9 @@ def test_algorithm_pairs_are_siblings_of_one_base_config(base, siblings):
         own = {f.name: f for f in dataclasses.fields(config_type)}
         for field in dataclasses.fields(base):  # every base field, static or traced as the base declares it
             assert own[field.name].metadata.get("pytree_node", True) == field.metadata.get("pytree_node", True)
-    assert {agent_of(config_type()) for config_type in siblings} == {a.name for a in ALGORITHMS.values()
-                                                                    if a.config_type in siblings}
+    assert {agent_of(config_type()) for config_type in siblings} == {
+        a.name for a in ALGORITHMS.values() if a.config_type in siblings
+    }
 
 
 def test_ppo_rnn_config_reads_files_that_name_shared_network():
@@ -351,8 +355,11 @@ def test_reward_scale_multiplies_the_stored_rewards(name):
     same key, before learning starts, 0.5 stores exactly half of every reward 1.0 stores and everything else the
     same."""
     algo = ALGORITHMS[name]
-    base = TINY["dqn"] if name == "dqn" else DRQNConfig(total_timesteps=2048, eval_every=1024, buffer_size=64,
-                                                         learning_starts=1000, batch_size=4)
+    base = (
+        TINY["dqn"]
+        if name == "dqn"
+        else DRQNConfig(total_timesteps=2048, eval_every=1024, buffer_size=64, learning_starts=1000, batch_size=4)
+    )
     key = jax.random.PRNGKey(3)
 
     @jax.jit

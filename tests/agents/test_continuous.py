@@ -17,8 +17,16 @@ from amjax.agents.policies import Categorical, GaussianOutputs, HybridGaussian, 
 from amjax.factory import make
 from amjax.wrappers.active_measure import ActiveMeasure, AlwaysMeasured
 
-TINY = PPOConfig(env_id="Pendulum-v1", total_timesteps=2048, eval_every=1024, num_envs=4, num_steps=64,
-                 num_minibatches=4, eval_episodes=2, hidden=(16,))
+TINY = PPOConfig(
+    env_id="Pendulum-v1",
+    total_timesteps=2048,
+    eval_every=1024,
+    num_envs=4,
+    num_steps=64,
+    num_minibatches=4,
+    eval_episodes=2,
+    hidden=(16,),
+)
 
 
 def _outputs(rng: np.random.Generator, batch: int, controls: int, measure: bool) -> GaussianOutputs:
@@ -37,7 +45,7 @@ def test_hybrid_log_prob_and_entropy_match_scipy(measure):
     action = dist.sample(jax.random.key(1), out)
     assert action.shape == (64, 3 + measure)
     mean, std = np.asarray(out.mean), np.exp(np.asarray(out.log_std))
-    control = np.asarray(action)[:, int(measure):]
+    control = np.asarray(action)[:, int(measure) :]
     expected = stats.norm.logpdf(control, mean, std).sum(-1)
     expected_entropy = stats.norm.entropy(mean, std).sum(-1)
     if measure:

@@ -58,8 +58,17 @@ def test_without_measure_the_eval_action_is_the_mode():
     np.testing.assert_array_equal(dist.mode_sampling_measure(jax.random.key(0), logits), dist.mode(logits))
 
 
-TINY = PPOConfig(env_id="CartPole-v0", cost=0.1, total_timesteps=2048, eval_every=1024, num_envs=4, num_steps=64,
-                 num_minibatches=4, eval_episodes=2, hidden=(16,))
+TINY = PPOConfig(
+    env_id="CartPole-v0",
+    cost=0.1,
+    total_timesteps=2048,
+    eval_every=1024,
+    num_envs=4,
+    num_steps=64,
+    num_minibatches=4,
+    eval_episodes=2,
+    hidden=(16,),
+)
 
 
 def _half_measuring_params(config):

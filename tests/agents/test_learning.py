@@ -51,8 +51,10 @@ def test_solves_cartpole_and_measures_less_under_cost(name):
     best_raw = raw[np.arange(len(best)), best].reshape(shape)
     best_measured = measured[np.arange(len(best)), best].reshape(shape)
     final_raw = raw[:, -1].reshape(shape)
-    message = (f"final raw returns {final_raw.tolist()}; at the best evaluation: raw {best_raw.tolist()}, "
-               f"measured fractions {best_measured.round(3).tolist()}")
+    message = (
+        f"final raw returns {final_raw.tolist()}; at the best evaluation: raw {best_raw.tolist()}, "
+        f"measured fractions {best_measured.round(3).tolist()}"
+    )
     assert np.median(final_raw[0]) >= 195, message  # cost 0: solved, and still solved at the end
     assert np.median(best_raw[1]) >= 195, message  # cost 0.2: the best policy keeps the pole up ...
     assert np.median(best_measured[1]) < 0.9, message  # ... while skipping measurements
@@ -99,8 +101,9 @@ def test_ppo_balances_brax_inverted_pendulum():
     float rounding (seeds 0-2 passed on a 2-core Intel Xeon, scored 897 / 1000 / 632 on a 2-core AMD EPYC); at
     204,800 steps seeds 0-5 all reach 1,000 on the AMD EPYC (87 s for the 6)."""
     pytest.importorskip("brax")
-    config = PPOConfig(env_id="brax:inverted_pendulum", vanilla=True, total_timesteps=204_800, eval_every=10_240,
-                       eval_episodes=5)
+    config = PPOConfig(
+        env_id="brax:inverted_pendulum", vanilla=True, total_timesteps=204_800, eval_every=10_240, eval_episodes=5
+    )
     rows = train_rows(PPO, [config] * len(SEEDS), list(SEEDS))
     best = np.asarray(rows.test.raw_return).max(axis=1)
     assert np.median(best) >= 950, f"best test returns per seed {best.round(1).tolist()}"

@@ -91,8 +91,9 @@ def test_measure_prior_sets_the_initial_probability_of_measuring(case, prior):
     if case.startswith("box"):
         dist = for_action_space(spaces.Box(-1.0, 1.0, (1 + readings,)), measure=True, readings=readings)
     else:
-        dist = for_action_space(spaces.Discrete(3 * 2**readings), measure=True, readings=readings,
-                                factored=case == "factored")
+        dist = for_action_space(
+            spaces.Discrete(3 * 2**readings), measure=True, readings=readings, factored=case == "factored"
+        )
     np.testing.assert_allclose(_initial_measure_probability(dist, prior, readings), prior, atol=0.02)
     net = ActorCritic(dist, hidden=(8,))
     params = net.init(jax.random.key(1), jnp.zeros((1, 5)))["params"]

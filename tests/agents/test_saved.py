@@ -15,7 +15,13 @@ from amjax.agents import drqn as drqn_module
 from amjax.agents.training import evaluate
 
 PPO_CONFIG = ppo.PPOConfig(
-    env_id="CartPole-v0", cost=0.2, num_envs=4, num_steps=32, hidden=(16,), total_timesteps=2560, eval_every=1280,
+    env_id="CartPole-v0",
+    cost=0.2,
+    num_envs=4,
+    num_steps=32,
+    hidden=(16,),
+    total_timesteps=2560,
+    eval_every=1280,
     learning_rate=3e-3,
 )
 
@@ -38,8 +44,9 @@ def test_save_load_evaluate_equals_in_memory(tmp_path, trained):
     path = save_policy(tmp_path / "p.msgpack", PPO_CONFIG, state.best_params, {"note": "test"})
     saved = load_policy(path)
     assert saved.agent == "ppo" and saved.config == PPO_CONFIG and saved.info == {"note": "test"}
-    chex_equal = jax.tree.map(lambda a, b: np.array_equal(np.asarray(a), np.asarray(b)), saved.params,
-                              state.best_params)
+    chex_equal = jax.tree.map(
+        lambda a, b: np.array_equal(np.asarray(a), np.asarray(b)), saved.params, state.best_params
+    )
     assert all(jax.tree.leaves(chex_equal))
     key = jax.random.key(7)
     assert saved.evaluate(key, 12) == _in_memory(PPO_CONFIG, state.best_params, key, 12, ppo)
@@ -47,7 +54,8 @@ def test_save_load_evaluate_equals_in_memory(tmp_path, trained):
     best = int(np.argmax(np.asarray(rows.test.costed_return)))
     eval_key = jax.random.fold_in(state.key, best)
     assert saved.evaluate(eval_key, PPO_CONFIG.eval_episodes)["costed_return"] == pytest.approx(
-        float(state.best_return), rel=1e-6)
+        float(state.best_return), rel=1e-6
+    )
     # Scored at another cost: same actions, the cost changes the costed return only.
     other = saved.evaluate(key, 12, cost=0.0)
     assert other["raw_return"] == other["costed_return"] == pytest.approx(saved.evaluate(key, 12)["raw_return"])

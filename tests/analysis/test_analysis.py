@@ -197,8 +197,12 @@ def test_best_hyperparams_picks_the_best_median():
     )
     chosen = analysis.best_hyperparams(summary)
     assert list(chosen.learning_rate) == [3e-4, 3e-4]
-    assert analysis.to_markdown(analysis.paper_table(summary.assign(best_measured_fraction=0.5, diverged=False))
-                                ).count("| 0.0003 |") == 1  # the table keeps every combination
+    assert (
+        analysis.to_markdown(analysis.paper_table(summary.assign(best_measured_fraction=0.5, diverged=False))).count(
+            "| 0.0003 |"
+        )
+        == 1
+    )  # the table keeps every combination
     assert analysis.best_hyperparams(summary.drop(columns="learning_rate")).equals(
         summary.drop(columns="learning_rate")
     )
@@ -284,8 +288,9 @@ def test_record_agent_and_plot(tmp_path):
     assert mmap.measured.shape == (4, max_steps) == (4, 200)
     np.testing.assert_array_equal(mmap.measured, by_policy.measured)
     np.testing.assert_array_equal(mmap.active, by_policy.active)
-    fig = analysis.plot_measurement_map({"cost 0.2": mmap, "again": by_policy}, title="untrained",
-                                        path=tmp_path / "map.png")
+    fig = analysis.plot_measurement_map(
+        {"cost 0.2": mmap, "again": by_policy}, title="untrained", path=tmp_path / "map.png"
+    )
     assert len(fig.axes) == 2
     _nonempty_image(tmp_path / "map.png")
     analysis.save_figure(analysis.plot_measurement_map(mmap), tmp_path / "single.svg")
@@ -337,7 +342,8 @@ def test_write_report(sweep_dir, tmp_path):
 def test_report_on_partial_sweep(sweep_dir, tmp_path):
     # No vanilla, one cost, one seed, half the evaluations: as a sweep interrupted early.
     partial = _partial_copy(
-        sweep_dir, tmp_path / "partial",
+        sweep_dir,
+        tmp_path / "partial",
         lambda r: ~r.vanilla & (r.cost == 0.2) & (r.seed == 0) & (r.env_steps <= 2048),
     )
     report = analysis.write_report(partial)

@@ -62,10 +62,20 @@ def brax_run(env_name: str):
     step_keys = jax.random.split(key_steps, (BATCH, STEPS))
     actions = jax.random.uniform(key_actions, (BATCH, STEPS, env.action_size), minval=-2.0, maxval=2.0)
     obs0, state0, (obs, reward, terminated, truncated, info) = batched_rollout(
-        env, params, reset_keys, step_keys, actions)
+        env, params, reset_keys, step_keys, actions
+    )
     inputs = {"reset_keys": reset_keys, "step_keys": step_keys, "actions": np.asarray(actions)}
-    outputs = jax.device_get({"obs0": obs0, "state0": state0, "obs": obs, "reward": reward, "terminated": terminated,
-                              "truncated": truncated, "info": info})
+    outputs = jax.device_get(
+        {
+            "obs0": obs0,
+            "state0": state0,
+            "obs": obs,
+            "reward": reward,
+            "terminated": terminated,
+            "truncated": truncated,
+            "info": info,
+        }
+    )
     return env, params, inputs, outputs
 
 
@@ -92,8 +102,9 @@ def test_matches_brax_step_for_step(env_name):
             where = f"{env_name}, member {member}, step {t}"
             # Same computation, compiled in a different program (a scan, vmapped): XLA may fuse it differently,
             # so float32 rounding may differ in the last bits.
-            np.testing.assert_allclose(out["info"]["final_observation"][member, t], state.obs, rtol=1e-5, atol=1e-5,
-                                       err_msg=where)
+            np.testing.assert_allclose(
+                out["info"]["final_observation"][member, t], state.obs, rtol=1e-5, atol=1e-5, err_msg=where
+            )
             np.testing.assert_allclose(out["reward"][member, t], state.reward, rtol=1e-5, atol=1e-5, err_msg=where)
             assert out["terminated"][member, t] == bool(state.done), where
             assert out["truncated"][member, t] == (time >= params.max_steps_in_episode), where
@@ -111,7 +122,7 @@ def test_episodes_end_by_termination_and_by_truncation():
     np.testing.assert_array_equal(pendulum["info"]["discount"], 1.0 - pendulum["terminated"])
     # Reacher never terminates: it is truncated at the limit (15 steps), with discount 1 (not a terminal state).
     expected = np.zeros(STEPS, bool)
-    expected[MAX_STEPS["reacher"] - 1::MAX_STEPS["reacher"]] = True
+    expected[MAX_STEPS["reacher"] - 1 :: MAX_STEPS["reacher"]] = True
     for member in range(BATCH):
         np.testing.assert_array_equal(reacher["truncated"][member], expected)
     assert not reacher["terminated"].any()
@@ -129,7 +140,7 @@ def test_every_reset_draws_fresh_randomness(env_name):
     for member, t in zip(*np.nonzero(out["terminated"] | out["truncated"]), strict=True):
         starts.append(out["obs"][member, t])
     assert len(starts) >= 2 * BATCH + 2
-    distances = [np.abs(a - b).max() for i, a in enumerate(starts) for b in starts[i + 1:]]
+    distances = [np.abs(a - b).max() for i, a in enumerate(starts) for b in starts[i + 1 :]]
     assert min(distances) > 0
 
 
@@ -199,7 +210,8 @@ def check_box_measuring(env_id, plain_env, plain_params, plain_out, reset_key, s
     measure = np.resize([0.2, 0.5, 0.4999, 1.0, 0.0, 0.7], len(controls)).astype(np.float32)
     actions = np.concatenate([measure[:, None], controls], axis=1)
     obs0, _, (obs, reward, terminated, truncated, info) = jax.device_get(
-        batched_rollout(env, params, reset_key[None], step_keys[None], actions[None]))
+        batched_rollout(env, params, reset_key[None], step_keys[None], actions[None])
+    )
     obs0, obs, reward, info = obs0[0], obs[0], reward[0], jax.tree.map(lambda x: x[0], info)
     done = terminated[0] | truncated[0]
     measured = measure >= 0.5
@@ -219,11 +231,22 @@ def check_box_measuring(env_id, plain_env, plain_params, plain_out, reset_key, s
 
 def test_brax_env_through_make_charges_only_measurements():
     plain, params, inputs, out = brax_run("inverted_pendulum")
-    plain_out = {"obs0": out["obs0"][0], "final_observation": out["info"]["final_observation"][0],
-                 "reward": out["reward"][0]}
+    plain_out = {
+        "obs0": out["obs0"][0],
+        "final_observation": out["info"]["final_observation"][0],
+        "reward": out["reward"][0],
+    }
     controls = inputs["actions"][0]
-    done = check_box_measuring("brax:inverted_pendulum", plain, params, plain_out, inputs["reset_keys"][0],
-                               inputs["step_keys"][0], controls, cost=0.2)
+    done = check_box_measuring(
+        "brax:inverted_pendulum",
+        plain,
+        params,
+        plain_out,
+        inputs["reset_keys"][0],
+        inputs["step_keys"][0],
+        controls,
+        cost=0.2,
+    )
     assert done.any(), "the run crosses an auto-reset"
 
 
@@ -235,7 +258,8 @@ def test_gymnax_box_env_through_make_charges_only_measurements(env_id):
     step_keys = jax.random.split(key_steps, 12)
     controls = np.asarray(jax.random.uniform(key_actions, (12, d), minval=-1.0, maxval=1.0))
     obs0, _, (_, reward, *_, info) = jax.device_get(
-        batched_rollout(plain, params, key_reset[None], step_keys[None], controls[None]))
+        batched_rollout(plain, params, key_reset[None], step_keys[None], controls[None])
+    )
     plain_out = {"obs0": obs0[0], "final_observation": info["final_observation"][0], "reward": reward[0]}
     check_box_measuring(env_id, plain, params, plain_out, key_reset, step_keys, controls, cost=0.1)
 
@@ -246,8 +270,11 @@ def test_gymnax_box_env_through_make_charges_only_measurements(env_id):
 @pytest.mark.parametrize(
     ("env_id", "message"),
     [
-        ("brax:reacher:warp", "env_id: unknown brax backend 'warp' in 'brax:reacher:warp'; allowed values: "
-                              "generalized, positional, spring, mjx"),
+        (
+            "brax:reacher:warp",
+            "env_id: unknown brax backend 'warp' in 'brax:reacher:warp'; allowed values: "
+            "generalized, positional, spring, mjx",
+        ),
         ("brax:", "env_id: got 'brax:'; allowed values: 'brax:<env_name>' or 'brax:<env_name>:<backend>'"),
         ("brax:reacher:spring:x", "env_id: got 'brax:reacher:spring:x'"),
     ],
@@ -259,8 +286,11 @@ def test_malformed_ids_and_unknown_backends_are_refused(env_id, message):
 
 def test_unknown_brax_name_lists_brax_names():
     needs_brax()
-    with pytest.raises(ValueError, match="env_id: unknown brax environment 'cartpole' in 'brax:cartpole'; allowed "
-                                         "values: ant, .*inverted_pendulum, .*reacher") as error:
+    with pytest.raises(
+        ValueError,
+        match="env_id: unknown brax environment 'cartpole' in 'brax:cartpole'; allowed "
+        "values: ant, .*inverted_pendulum, .*reacher",
+    ) as error:
         amjax.make_env("brax:cartpole")
     assert "walker2d" in str(error.value)
 
@@ -297,8 +327,9 @@ def test_without_brax_a_brax_id_says_how_to_install_it(without_brax, env_id):
 def test_sweep_command_takes_any_brax_id():
     """`python -m train sweep --env` takes every id `amjax.make` does, a backend included (not only the listed ids)."""
     needs_brax()
-    args = build_parser().parse_args(["sweep", "--env", "brax:reacher:spring", "brax:hopper", "--agent", "ppo",
-                                      "--out", "unused"])
+    args = build_parser().parse_args(
+        ["sweep", "--env", "brax:reacher:spring", "brax:hopper", "--agent", "ppo", "--out", "unused"]
+    )
     assert spec_from_args(args).envs == ("brax:reacher:spring", "brax:hopper")
 
 

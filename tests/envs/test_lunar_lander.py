@@ -94,8 +94,7 @@ def _gymnasium_transitions(module, n_random: int = 4, n_heuristic: int = 4):
             prev = env.prev_shaping
             obs, reward, terminated, _, _ = env.step(action)
             m_power, s_power = float(action == 2), float(action in (1, 3))
-            rows.append((obs, prev, m_power, s_power, env.game_over, env.lander.awake, reward,
-                         terminated))
+            rows.append((obs, prev, m_power, s_power, env.game_over, env.lander.awake, reward, terminated))
             if terminated:
                 break
     return rows
@@ -106,8 +105,12 @@ def test_reward_and_termination_match_gymnasium() -> None:
     rows = _gymnasium_transitions(_gymnasium())
     cols = [np.array(c) for c in zip(*rows, strict=True)]
     reward, terminated, _ = jax.vmap(_jitted()["reward"])(
-        jnp.asarray(cols[0]), jnp.asarray(cols[1], jnp.float32), jnp.asarray(cols[2], jnp.float32),
-        jnp.asarray(cols[3], jnp.float32), jnp.asarray(cols[4]), jnp.asarray(cols[5]),
+        jnp.asarray(cols[0]),
+        jnp.asarray(cols[1], jnp.float32),
+        jnp.asarray(cols[2], jnp.float32),
+        jnp.asarray(cols[3], jnp.float32),
+        jnp.asarray(cols[4]),
+        jnp.asarray(cols[5]),
     )
     np.testing.assert_allclose(np.asarray(reward), cols[6], atol=1e-3)
     np.testing.assert_array_equal(np.asarray(terminated), cols[7])
@@ -164,14 +167,11 @@ def test_heuristic_lands_and_sleeps() -> None:
     for episode in range(3):
         key, k_h, k_f = jax.random.split(key, 3)
         heights = jax.random.uniform(k_h, (12,), maxval=ll.H / 2)
-        obs, state = fns["reset"](heights, jax.random.uniform(k_f, (2,), minval=-1e3, maxval=1e3),
-                                  params)
+        obs, state = fns["reset"](heights, jax.random.uniform(k_f, (2,), minval=-1e3, maxval=1e3), params)
         for _ in range(1000):
             key, k = jax.random.split(key)
             dispersion = jax.random.uniform(k, (2,), minval=-1.0, maxval=1.0)
-            obs, state, reward, terminated, info = step(
-                state, fns["policy"](obs), dispersion, params
-            )
+            obs, state, reward, terminated, info = step(state, fns["policy"](obs), dispersion, params)
             if terminated:
                 ends.append((float(reward), bool(info["landed"]), bool(obs[6] and obs[7])))
                 break
@@ -202,9 +202,13 @@ def test_vmap_256_envs_300_steps_finite() -> None:
     env = LunarLander(velocity_iterations=30)
     n = 256
     gravity = jnp.linspace(-11.5, -2.0, n)
-    params = EnvParams(gravity=gravity, enable_wind=jnp.arange(n) % 2 == 0,
-                       wind_power=jnp.full(n, 15.0), turbulence_power=jnp.full(n, 1.5),
-                       max_steps_in_episode=jnp.full(n, 1000))
+    params = EnvParams(
+        gravity=gravity,
+        enable_wind=jnp.arange(n) % 2 == 0,
+        wind_power=jnp.full(n, 15.0),
+        turbulence_power=jnp.full(n, 1.5),
+        max_steps_in_episode=jnp.full(n, 1000),
+    )
 
     @jax.jit
     def rollout(key):
@@ -225,7 +229,6 @@ def test_vmap_256_envs_300_steps_finite() -> None:
     assert obs.shape == (n, 8) and obs.dtype == jnp.float32
     assert bool(finite)
     assert int(done.sum()) > n  # random play ends episodes (mostly crashes); auto-reset continues
-
 
 
 def _short_episodes_rollout(step, env: LunarLander, n: int):
@@ -291,9 +294,16 @@ def test_large_batch_steps_in_groups(monkeypatch) -> None:
 # --- parameter validation -------------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("gravity", 0.0), ("gravity", -12.0), ("gravity", 3.0), ("gravity", float("nan")),
-     ("wind_power", -0.1), ("wind_power", 20.5), ("turbulence_power", -1.0),
-     ("turbulence_power", 2.01)],
+    [
+        ("gravity", 0.0),
+        ("gravity", -12.0),
+        ("gravity", 3.0),
+        ("gravity", float("nan")),
+        ("wind_power", -0.1),
+        ("wind_power", 20.5),
+        ("turbulence_power", -1.0),
+        ("turbulence_power", 2.01),
+    ],
 )
 def test_validate_params_rejects_out_of_range(field: str, value: float) -> None:
     params = EnvParams().replace(**{field: value})
@@ -318,8 +328,14 @@ def _free_flight_states(seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     hull = rng.normal(size=n) * 0.3
     offsets = rng.uniform(-0.08, 0.08, (2, n)) + np.where(rng.random((2, n)) < 0.5, 0.0, 0.25)
-    angles = np.stack([hull, hull + llc.JOINT_REFERENCE[0] + llc.JOINT_LOWER[0] + offsets[0],
-                       hull + llc.JOINT_REFERENCE[1] + llc.JOINT_UPPER[1] - offsets[1]], 1).astype(np.float32)
+    angles = np.stack(
+        [
+            hull,
+            hull + llc.JOINT_REFERENCE[0] + llc.JOINT_LOWER[0] + offsets[0],
+            hull + llc.JOINT_REFERENCE[1] + llc.JOINT_UPPER[1] - offsets[1],
+        ],
+        1,
+    ).astype(np.float32)
     return angles, rng.normal(size=(n, 3, 3)).astype(np.float32)
 
 
@@ -327,9 +343,16 @@ def _joints_at(a: jax.Array, v: jax.Array) -> tuple[list, list, tuple]:
     """Limit states, the joints' constraints and the bodies' (vx, vy, w) of one state of `_free_flight_states`."""
     from amjax.envs.lunar_lander.joints import joint_constraint
 
-    limit = [jnp.where(a[k + 1] - a[0] - llc.JOINT_REFERENCE[k] <= llc.JOINT_LOWER[k], llc.LIMIT_AT_LOWER,
-                       jnp.where(a[k + 1] - a[0] - llc.JOINT_REFERENCE[k] >= llc.JOINT_UPPER[k],
-                                 llc.LIMIT_AT_UPPER, llc.LIMIT_INACTIVE)) for k in range(2)]
+    limit = [
+        jnp.where(
+            a[k + 1] - a[0] - llc.JOINT_REFERENCE[k] <= llc.JOINT_LOWER[k],
+            llc.LIMIT_AT_LOWER,
+            jnp.where(
+                a[k + 1] - a[0] - llc.JOINT_REFERENCE[k] >= llc.JOINT_UPPER[k], llc.LIMIT_AT_UPPER, llc.LIMIT_INACTIVE
+            ),
+        )
+        for k in range(2)
+    ]
     joints = [joint_constraint(a[0], a[k + 1], k, limit[k]) for k in range(2)]
     return limit, joints, tuple((v[b, 0], v[b, 1], v[b, 2]) for b in range(3))
 
@@ -348,7 +371,8 @@ def test_exact_joint_solve_is_the_sweeps_fixed_point() -> None:
             bodies, impulses, motors = (list(x) for x in carry)
             for k in llc.JOINT_ORDER:
                 bodies[0], bodies[k + 1], impulses[k], motors[k], _ = joint_velocity(
-                    bodies[0], bodies[k + 1], joints[k], k, impulses[k], motors[k])
+                    bodies[0], bodies[k + 1], joints[k], k, impulses[k], motors[k]
+                )
             return tuple(bodies), tuple(impulses), tuple(motors)
 
         swept = jax.lax.fori_loop(0, sweeps, sweep, (bodies, ((zero,) * 3,) * 2, (zero,) * 2))[0]
@@ -410,9 +434,20 @@ def test_free_flight_sweeps_the_joints_alone() -> None:
         limit, joints, bodies = _joints_at(a, v)
         jimp = tuple((w[k, 0], w[k, 1], jnp.where(limit[k] == llc.LIMIT_INACTIVE, 0.0, w[k, 2])) for k in range(2))
         jmot = tuple(jnp.clip(w[k, 3], -llc.JOINT_MAX_IMPULSE, llc.JOINT_MAX_IMPULSE) for k in range(2))
-        cons = [contact_constraint(b, jnp.int32(0), jnp.bool_(True), jnp.array([0.0, 1.0]), jnp.zeros(2),
-                                   jnp.zeros((2, 2)), (10.0, 5.0), a[b])
-                for b in llc.CONTACT_BODY_ORDER for _ in range(2)]
+        cons = [
+            contact_constraint(
+                b,
+                jnp.int32(0),
+                jnp.bool_(True),
+                jnp.array([0.0, 1.0]),
+                jnp.zeros(2),
+                jnp.zeros((2, 2)),
+                (10.0, 5.0),
+                a[b],
+            )
+            for b in llc.CONTACT_BODY_ORDER
+            for _ in range(2)
+        ]
         bodies_of = [con.pop("b") for con in cons]
         cimp = tuple(tuple(cw[i]) for i in range(len(cons)))
         operands = (bodies, joints, jimp, jmot, cons, cimp)
@@ -440,13 +475,15 @@ def test_jumped_sweeps_equal_the_sweeps() -> None:
         jimp = tuple((w[k, 0], w[k, 1], jnp.where(limit[k] == llc.LIMIT_INACTIVE, 0.0, w[k, 2])) for k in range(2))
         jmot = tuple(jnp.clip(w[k, 3], -llc.JOINT_MAX_IMPULSE, llc.JOINT_MAX_IMPULSE) for k in range(2))
         swept = _gauss_seidel(bodies, joints, jimp, jmot, [], (), bodies=[], iterations=llc.VELOCITY_ITERATIONS)
-        jumped, agree = _jumped_sweeps(bodies, joints, jimp, jmot, iterations=llc.VELOCITY_ITERATIONS,
-                                       segments=JUMP_SEGMENTS)
+        jumped, agree = _jumped_sweeps(
+            bodies, joints, jimp, jmot, iterations=llc.VELOCITY_ITERATIONS, segments=JUMP_SEGMENTS
+        )
         flat = [jnp.stack(jax.tree.leaves(x[:3])) for x in (swept, jumped)]
         # A reset's impulses start as constants (unvarying under shard_map).
         zero = (jnp.float32(0),) * 3
-        from_rest = _jumped_sweeps(bodies, joints, (zero, zero), zero[:2], iterations=llc.VELOCITY_ITERATIONS,
-                                   segments=JUMP_SEGMENTS)[0][0]
+        from_rest = _jumped_sweeps(
+            bodies, joints, (zero, zero), zero[:2], iterations=llc.VELOCITY_ITERATIONS, segments=JUMP_SEGMENTS
+        )[0][0]
         return flat[0], flat[1], agree & jnp.all(jnp.isfinite(jnp.stack(jax.tree.leaves(from_rest))))
 
     # Inside shard_map with its default check_vma, as a user who splits envs over devices runs it.
@@ -462,9 +499,12 @@ def test_jumped_sweeps_equal_the_sweeps() -> None:
 
 @pytest.mark.parametrize(
     ("kwargs", "name"),
-    [({"jump_sweeps": 1}, "jump_sweeps"), ({"exact_free_flight": "yes"}, "exact_free_flight"),
-     ({"velocity_iterations": 0}, "velocity_iterations"),
-     ({"exact_free_flight": True, "jump_sweeps": True}, "exact_free_flight and jump_sweeps")],
+    [
+        ({"jump_sweeps": 1}, "jump_sweeps"),
+        ({"exact_free_flight": "yes"}, "exact_free_flight"),
+        ({"velocity_iterations": 0}, "velocity_iterations"),
+        ({"exact_free_flight": True, "jump_sweeps": True}, "exact_free_flight and jump_sweeps"),
+    ],
 )
 def test_solver_settings_are_checked(kwargs: dict, name: str) -> None:
     with pytest.raises(ValueError, match=name):

@@ -61,8 +61,9 @@ def _assert_same_results(out: Path, local) -> None:
     np.testing.assert_allclose(a[VALUE_COLUMNS].to_numpy(float), b[VALUE_COLUMNS].to_numpy(float), rtol=1e-5)
     summary = pd.read_parquet(out / "summary.parquet").sort_values("config_id").reset_index(drop=True)
     expected = local.summary.sort_values("config_id").reset_index(drop=True)
-    np.testing.assert_allclose(summary[RESCORED_COLUMNS].to_numpy(float), expected[RESCORED_COLUMNS].to_numpy(float),
-                               rtol=1e-5)
+    np.testing.assert_allclose(
+        summary[RESCORED_COLUMNS].to_numpy(float), expected[RESCORED_COLUMNS].to_numpy(float), rtol=1e-5
+    )
     assert not (out / "parts").exists()
     assert not list(out.rglob("*.pkl"))
     policies = sorted(p.name for p in (out / "policies").iterdir())
@@ -84,14 +85,21 @@ def test_cluster_and_local_runs_resume_each_other_through_kills(tmp_path, stop_s
         run_sweep(SPEC, out, progress=False, target_chunks=8, checkpoint_every_s=0, on_chunk=stop_sweep_after(2))
     local_rows = len(pd.read_parquet(out / "results.parquet"))
 
-    driver = (f"from amjax.sweep import SweepSpec, run_sweep; spec = SweepSpec.from_json({SPEC.to_json()!r}); "
-              f"run_sweep(spec, {str(out)!r}, progress=False, target_chunks=8, checkpoint_every_s=0, "
-              "cluster='local:2')")
+    driver = (
+        f"from amjax.sweep import SweepSpec, run_sweep; spec = SweepSpec.from_json({SPEC.to_json()!r}); "
+        f"run_sweep(spec, {str(out)!r}, progress=False, target_chunks=8, checkpoint_every_s=0, "
+        "cluster='local:2')"
+    )
     # The driver (and so its workers) on this process's device count, as every other run of the chain: across
     # counts, results agree only to float rounding, which training can amplify past the comparison's tolerance.
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2]), "JAX_NUM_CPU_DEVICES": str(jax.device_count())}
-    process = subprocess.Popen([sys.executable, "-c", driver], env=env, start_new_session=True,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    process = subprocess.Popen(
+        [sys.executable, "-c", driver],
+        env=env,
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.monotonic() + 300
     try:  # once the DQN batch has begun (the PPO batch went on from the local checkpoint)
         while not _part_rows(out, "dqn"):
@@ -156,8 +164,10 @@ def test_targets_and_parameters_are_checked_before_anything_is_written(tmp_path,
     for bad in ("local", "local:0", "local:-1", "slurm:", "ray:4", "slurm:cpu:0"):
         with pytest.raises(ValueError, match=f"cluster: got '{bad}'; allowed values: local:N"):
             run_sweep(SPEC, never, cluster=bad)
-    for parameters, message in (({"account": "lab"}, "'account' is not a parameter of submitit's local executor"),
-                                ({"setup": "module load x"}, "setup must be a list of shell lines")):
+    for parameters, message in (
+        ({"account": "lab"}, "'account' is not a parameter of submitit's local executor"),
+        ({"setup": "module load x"}, "setup must be a list of shell lines"),
+    ):
         with pytest.raises(ValueError, match=message):
             run_sweep(SPEC, never, cluster="local:2", cluster_parameters=parameters)
     monkeypatch.setenv("PATH", str(tmp_path / "empty"))  # no Slurm here
@@ -171,11 +181,18 @@ def test_slurm_jobs_take_a_whole_node_and_the_drivers_device_count(tmp_path, slu
     check_parameters(ClusterTarget("slurm", 4, "cpu"), {"account": "lab", "time": 600, "mem": "64G"})
     with pytest.raises(ValueError, match="'timeout_min' is not a parameter of submitit's slurm executor"):
         check_parameters(ClusterTarget("slurm", 4, "cpu"), {"timeout_min": 600})  # sbatch's name is `time`
-    executor = make_executor(parse_cluster("slurm:cpu:8"), tmp_path / "logs", 64,
-                             {"account": "lab", "setup": ["source ~/venv/bin/activate"]})
+    executor = make_executor(
+        parse_cluster("slurm:cpu:8"), tmp_path / "logs", 64, {"account": "lab", "setup": ["source ~/venv/bin/activate"]}
+    )
     script = executor._make_submission_file_text("python -m submitit.core._submit", "uid")
-    for line in ("#SBATCH --partition=cpu", "#SBATCH --exclusive", "#SBATCH --nodes=1", "#SBATCH --account=lab",
-                 "export JAX_NUM_CPU_DEVICES=64", "source ~/venv/bin/activate"):
+    for line in (
+        "#SBATCH --partition=cpu",
+        "#SBATCH --exclusive",
+        "#SBATCH --nodes=1",
+        "#SBATCH --account=lab",
+        "export JAX_NUM_CPU_DEVICES=64",
+        "source ~/venv/bin/activate",
+    ):
         assert line in script, script
 
 
@@ -203,8 +220,13 @@ def test_a_cancelled_local_job_stops_its_worker(tmp_path, driver_sigint):
 def _fake_part(out: Path, batch: str, evals: int, rows: int, finished: bool) -> None:
     part = out / "parts" / batch
     save_checkpoint(part / "checkpoints" / f"{batch}.msgpack", {"w": np.zeros(3)}, evals)
-    table = pd.DataFrame({"config_id": ["c0"] * rows, "env_steps": np.arange(1, rows + 1) * 1024,
-                          "eval_return": np.full(rows, float(evals))})
+    table = pd.DataFrame(
+        {
+            "config_id": ["c0"] * rows,
+            "env_steps": np.arange(1, rows + 1) * 1024,
+            "eval_return": np.full(rows, float(evals)),
+        }
+    )
     write_table(part / "results", table)
     if finished:
         write_table(part / "rescored", pd.DataFrame({"config_id": ["c0"], "best_policy_return": [1.0]}))
@@ -241,8 +263,10 @@ def test_a_part_read_while_its_worker_replaces_it_is_never_torn(tmp_path):
         rows = 10
         while not stop.is_set():
             rows = rows + 37 if rows < 3000 else 10
-            write_table(stem, pd.DataFrame({"config_id": ["c0"] * rows, "env_steps": np.arange(rows),
-                                            "eval_return": np.zeros(rows)}))
+            write_table(
+                stem,
+                pd.DataFrame({"config_id": ["c0"] * rows, "env_steps": np.arange(rows), "eval_return": np.zeros(rows)}),
+            )
 
     writer = threading.Thread(target=worker)
     writer.start()

@@ -47,8 +47,12 @@ SPEC = SweepSpec(
 )
 # One chunk per evaluation, a checkpoint (and the policies so far) after every chunk: every kind of write, twice.
 OPTIONS = {"progress": False, "target_chunks": 2, "checkpoint_every_s": 0.0}
-TABLES = {"results": ["config_id", "env_steps"], "rescored": ["config_id"], "summary": ["config_id"],
-          "seed_summary": ["agent", "cost"]}
+TABLES = {
+    "results": ["config_id", "env_steps"],
+    "rescored": ["config_id"],
+    "summary": ["config_id"],
+    "seed_summary": ["agent", "cost"],
+}
 BYTE_EXACT = ("checkpoints", "policies", "finished")  # folders whose files must equal the uninterrupted run's
 IGNORED = {".lock", "wall_time.json"}  # the lock file, and seconds that differ by run
 
@@ -86,8 +90,9 @@ def _digest(folder: Path, skip: str | None = None) -> str:
     return digest.hexdigest()
 
 
-def record_commit_points(run: Callable[[], object], out: Path, copies: Path, monkeypatch,
-                         before_first: Callable[[Path], None] | None = None) -> dict[str, Path]:
+def record_commit_points(
+    run: Callable[[], object], out: Path, copies: Path, monkeypatch, before_first: Callable[[Path], None] | None = None
+) -> dict[str, Path]:
     """Run `run()` (writing `out`) with every rename into `out` wrapped; returns {"<k>-<when>-<file>": copy of `out`
     at that instant}, one copy per distinct state. States that differ only in temporary files count as one: a
     rerun's first act is to delete those (`remove_partial_writes`), so the copy just before rename k (the file
@@ -141,8 +146,9 @@ def local_points(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
     """The uninterrupted local sweep and a copy of its folder at every commit point."""
     root = tmp_path_factory.mktemp("local")
     with pytest.MonkeyPatch.context() as monkeypatch:
-        points = record_commit_points(lambda: run_sweep(SPEC, root / "full", **OPTIONS), root / "full",
-                                      root / "points", monkeypatch)
+        points = record_commit_points(
+            lambda: run_sweep(SPEC, root / "full", **OPTIONS), root / "full", root / "points", monkeypatch
+        )
     return root / "full", points
 
 
@@ -176,10 +182,36 @@ def test_a_marker_without_its_files_is_redone(local_points, tmp_path):
 
 
 def _cli_sweep(out: Path) -> list[str]:
-    return ["sweep", "--env", "CartPole-v0", "--agent", "ppo", "dqn", "--cost", "0.1", "0.2", "--seeds", "1",
-            "--no-vanilla", "--steps", "2048", "--eval-every", "1024", "--eval-episodes", "2", "--set",
-            "ppo.num_envs=4", "--set", "ppo.num_steps=32", "--set", "rescore_episodes=4", "--no-env-defaults",
-            "--out", str(out), "--no-progress"]
+    return [
+        "sweep",
+        "--env",
+        "CartPole-v0",
+        "--agent",
+        "ppo",
+        "dqn",
+        "--cost",
+        "0.1",
+        "0.2",
+        "--seeds",
+        "1",
+        "--no-vanilla",
+        "--steps",
+        "2048",
+        "--eval-every",
+        "1024",
+        "--eval-episodes",
+        "2",
+        "--set",
+        "ppo.num_envs=4",
+        "--set",
+        "ppo.num_steps=32",
+        "--set",
+        "rescore_episodes=4",
+        "--no-env-defaults",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -191,14 +223,25 @@ def cli_run(tmp_path_factory) -> Path:
 
 
 # The first write of each kind (the checkpoint's on the checkpoint thread).
-WRITES = ["metadata.json", "results.parquet", "results.csv", "wall_time.json", "checkpoints/", "rescored.parquet",
-          "policies/", "finished/", "summary.parquet"]
+WRITES = [
+    "metadata.json",
+    "results.parquet",
+    "results.csv",
+    "wall_time.json",
+    "checkpoints/",
+    "rescored.parquet",
+    "policies/",
+    "finished/",
+    "summary.parquet",
+]
 
 
-@pytest.mark.parametrize(("code", "write"), [*(("ENOSPC", w) for w in WRITES), ("EACCES", "policies/"),
-                                             ("EROFS", "finished/")])
-def test_a_refused_write_stops_with_a_message_and_a_rerun_completes(cli_run, tmp_path, capsys, monkeypatch,
-                                                                    code, write):
+@pytest.mark.parametrize(
+    ("code", "write"), [*(("ENOSPC", w) for w in WRITES), ("EACCES", "policies/"), ("EROFS", "finished/")]
+)
+def test_a_refused_write_stops_with_a_message_and_a_rerun_completes(
+    cli_run, tmp_path, capsys, monkeypatch, code, write
+):
     """The disk refuses the first write of a kind (no space, no permission, read-only): the command prints one
     message naming the file and what to do, exits 2 with no traceback, leaves no temporary file, and the same
     command run again once the disk accepts writes ends as the uninterrupted run."""
@@ -247,12 +290,12 @@ def replace(source, target, *args, **kwargs):
 os.replace = replace
 run_sweep(SweepSpec.from_json(json.loads({json.dumps(SPEC.to_json())!r})), out, **{OPTIONS!r})
 """
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2]),
-           "JAX_COMPILATION_CACHE_DIR": str(compile_cache)}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2]), "JAX_COMPILATION_CACHE_DIR": str(compile_cache)}
     done = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 9, done.stderr[-3000:]
     assert _digest(out, skip="checkpoints") == _digest(points[name], skip="checkpoints"), (
-        "the kill left other files than the copy at that point")
+        "the kill left other files than the copy at that point"
+    )
     run_sweep(SPEC, out, **OPTIONS)
     assert_same_sweep(out, reference, where="after a real kill")
 
@@ -277,8 +320,9 @@ def test_every_cluster_driver_commit_point_recovers(compile_cache, tmp_path_fact
             assert time.monotonic() < deadline, "the workers did not finish"
             time.sleep(0.2)
 
-    points = record_commit_points(lambda: run_sweep(SPEC, full, **options), full, root / "points", monkeypatch,
-                                  before_first=both_parts_finished)
+    points = record_commit_points(
+        lambda: run_sweep(SPEC, full, **options), full, root / "points", monkeypatch, before_first=both_parts_finished
+    )
     kinds = {name.split("-", 2)[2] for name in points}
     assert {"results.parquet", "rescored.csv", "metadata.json", "summary.csv"} <= kinds
     assert any(k.startswith("ppo-") and k.endswith(".json") for k in kinds)  # a marker moved into out

@@ -22,8 +22,14 @@ from amjax.sweep.devices import _mulhi
 
 # Three configurations: an odd count, so a 2-device batch carries one padding configuration.
 ODD = SweepSpec(
-    envs=("CartPole-v0",), agents=("dqn",), costs=(0.1, 0.3), seeds=(0,), vanilla=True,
-    total_timesteps=2048, eval_every=1024, eval_episodes=2,
+    envs=("CartPole-v0",),
+    agents=("dqn",),
+    costs=(0.1, 0.3),
+    seeds=(0,),
+    vanilla=True,
+    total_timesteps=2048,
+    eval_every=1024,
+    eval_episodes=2,
     hyperparams={"learning_starts": 256, "buffer_size": 1024, "n_step": 1},  # n_step 1: zero-size pending arrays
 )
 COLUMNS = ["config_id", "env_steps", "eval_return", "eval_measurements", "train_return", "loss"]

@@ -14,8 +14,14 @@ from amjax.sweep.loggers import TensorBoardLogger, WandbLogger
 from train.cli import main
 
 TINY = SweepSpec(
-    envs=("CartPole-v0",), agents=("ppo",), costs=(0.0, 0.3), seeds=(0, 1), total_timesteps=2048, eval_every=1024,
-    eval_episodes=2, hyperparams={"num_envs": 4, "num_steps": 32},
+    envs=("CartPole-v0",),
+    agents=("ppo",),
+    costs=(0.0, 0.3),
+    seeds=(0, 1),
+    total_timesteps=2048,
+    eval_every=1024,
+    eval_episodes=2,
+    hyperparams={"num_envs": 4, "num_steps": 32},
 )
 
 
@@ -61,8 +67,11 @@ def _tensorboard_scalars(run_dir: Path) -> dict[str, dict[int, float]]:
 def logged(tmp_path_factory):
     out = tmp_path_factory.mktemp("logged")
     fake = FakeWandb()
-    loggers = [TensorBoardLogger(out / "tensorboard"), WandbLogger("amjax-test", out, wandb_module=fake),
-               WandbLogger("amjax-test", out / "real", mode="offline")]
+    loggers = [
+        TensorBoardLogger(out / "tensorboard"),
+        WandbLogger("amjax-test", out, wandb_module=fake),
+        WandbLogger("amjax-test", out / "real", mode="offline"),
+    ]
     result = run_sweep(TINY, out, progress=False, target_chunks=2, loggers=loggers)
     return out, result.results, fake
 
@@ -74,7 +83,8 @@ def test_tensorboard_one_run_per_config_with_the_results_values(logged):
         scalars = _tensorboard_scalars(out / "tensorboard" / config_id)
         assert scalars["eval/return"] == pytest.approx(dict(zip(rows.env_steps, rows.eval_return, strict=True)))
         assert scalars["eval/measured_fraction"] == pytest.approx(
-            dict(zip(rows.env_steps, rows.eval_measured_fraction, strict=True)))
+            dict(zip(rows.env_steps, rows.eval_measured_fraction, strict=True))
+        )
         assert set(scalars["diverged"].values()) == {0.0}
 
 
@@ -98,9 +108,31 @@ def test_wandb_offline_needs_no_network(logged):
 
 
 def test_cli_tensorboard_flag_and_bad_mode(tmp_path, capsys):
-    args = ["sweep", "--env", "CartPole-v0", "--agent", "ppo", "--cost", "0.1", "--seeds", "1", "--steps", "1024",
-            "--eval-every", "1024", "--eval-episodes", "2", "--set", "num_envs=4", "--set", "num_steps=32",
-            "--no-progress", "--tensorboard", "--out", str(tmp_path / "run")]
+    args = [
+        "sweep",
+        "--env",
+        "CartPole-v0",
+        "--agent",
+        "ppo",
+        "--cost",
+        "0.1",
+        "--seeds",
+        "1",
+        "--steps",
+        "1024",
+        "--eval-every",
+        "1024",
+        "--eval-episodes",
+        "2",
+        "--set",
+        "num_envs=4",
+        "--set",
+        "num_steps=32",
+        "--no-progress",
+        "--tensorboard",
+        "--out",
+        str(tmp_path / "run"),
+    ]
     assert main(args) == 0
     results = pd.read_parquet(tmp_path / "run" / "results.parquet")
     (run_dir,) = (tmp_path / "run" / "tensorboard").iterdir()

@@ -8,8 +8,22 @@ from amjax.analysis.pareto import cost_front, front_table
 from amjax.analysis.results import load_results
 from train.cli import main
 
-ARGS = ["pareto", "--agent", "ppo", "--seeds", "2", "--steps", "2048", "--eval-every", "1024", "--grid-step", "0.25",
-        "--specialist-costs", "0.2", "--no-progress"]
+ARGS = [
+    "pareto",
+    "--agent",
+    "ppo",
+    "--seeds",
+    "2",
+    "--steps",
+    "2048",
+    "--eval-every",
+    "1024",
+    "--grid-step",
+    "0.25",
+    "--specialist-costs",
+    "0.2",
+    "--no-progress",
+]
 
 
 @pytest.fixture(scope="module")
@@ -51,8 +65,10 @@ def test_table_ratio_against_the_specialists(front_folder):
     row = table.iloc[0]
     gap = (row["return conditioned"] - row["return specialists"]) / abs(row["return specialists"])
     assert row["gap"] == pytest.approx(gap)
-    negative = front_table(points.assign(**{"return": -points["return"]}),
-                           specialists.assign(best_policy_return=-specialists.best_policy_return))
+    negative = front_table(
+        points.assign(**{"return": -points["return"]}),
+        specialists.assign(best_policy_return=-specialists.best_policy_return),
+    )
     assert negative["gap"].iloc[0] == pytest.approx(-gap)  # a higher (less negative) reward is a positive gap
 
 

@@ -39,7 +39,10 @@ def test_default_grid_is_the_papers_and_extended_adds_the_recurrent_agents():
     envs = tuple(presets.REPLICATE_BUDGETS)
     paper = replicate_grid(envs)
     assert {env: spec.agents for env, spec in paper.items()} == {
-        "CartPole-v0": ("dqn", "ppo", "drqn"), "Acrobot-v1": ("dqn", "ppo"), "LunarLander-v3": ("dqn", "ppo")}
+        "CartPole-v0": ("dqn", "ppo", "drqn"),
+        "Acrobot-v1": ("dqn", "ppo"),
+        "LunarLander-v3": ("dqn", "ppo"),
+    }
     assert sum(len(expand(spec)) for spec in paper.values()) == (3 + 2 + 2) * 5 * 10 == 350
     extended = replicate_grid(envs, extended=True)
     assert all(spec.agents == ("dqn", "ppo", "drqn", "ppo-rnn") for spec in extended.values())
@@ -49,8 +52,19 @@ def test_default_grid_is_the_papers_and_extended_adds_the_recurrent_agents():
 
 def test_replicate_runs_reports_and_resumes(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(presets.QUICK_BUDGETS, "CartPole-v0", (2048, 1024))
-    args = ["replicate", "--quick", "--env", "CartPole-v0", "--agent", "ppo", "--seeds", "1", "--out",
-            str(tmp_path), "--no-progress"]
+    args = [
+        "replicate",
+        "--quick",
+        "--env",
+        "CartPole-v0",
+        "--agent",
+        "ppo",
+        "--seeds",
+        "1",
+        "--out",
+        str(tmp_path),
+        "--no-progress",
+    ]
     assert main(args) == 0
     index = (tmp_path / "report.md").read_text()
     assert "## CartPole-v0" in index and "| CartPole-v0 | ppo | vanilla |" in index
@@ -92,8 +106,21 @@ def test_next_environment_compiles_while_one_trains(tmp_path, monkeypatch):
 
     monkeypatch.setattr(runner, "compile_batch", logged_compile)
     monkeypatch.setattr(amjax.analysis, "write_report", logged_report)
-    args = ["replicate", "--quick", "--env", "CartPole-v0", "Acrobot-v1", "--agent", "ppo", "--seeds", "1",
-            "--out", str(tmp_path), "--no-progress", "--no-maps"]
+    args = [
+        "replicate",
+        "--quick",
+        "--env",
+        "CartPole-v0",
+        "Acrobot-v1",
+        "--agent",
+        "ppo",
+        "--seeds",
+        "1",
+        "--out",
+        str(tmp_path),
+        "--no-progress",
+        "--no-maps",
+    ]
     assert main(args) == 0
     compiles = [e for e in events if e[0] == "compile"]
     assert [e[1] for e in compiles] == ["CartPole-v0"] * 2 + ["Acrobot-v1"] * 2  # vanilla and costed PPO each
@@ -125,7 +152,19 @@ def test_bad_flags_exit_2_without_output(tmp_path, capsys, flags, message):
 def test_folder_in_use_is_refused(tmp_path, capsys):
     out = tmp_path / "rep"
     with folder_lock(out):  # as a second, live replicate process would hold it
-        code = main(["replicate", "--quick", "--env", "CartPole-v0", "--agent", "dqn", "--out", str(out),
-                     "--no-progress", "--no-maps"])
+        code = main(
+            [
+                "replicate",
+                "--quick",
+                "--env",
+                "CartPole-v0",
+                "--agent",
+                "dqn",
+                "--out",
+                str(out),
+                "--no-progress",
+                "--no-maps",
+            ]
+        )
     assert code == 2 and "another running process" in capsys.readouterr().err
     assert [p.name for p in out.iterdir()] == [".lock"]  # nothing written

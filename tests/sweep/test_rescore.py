@@ -61,7 +61,8 @@ def test_sweep_rescore_equals_the_run_alone(sweep):
     for run in expand(SPEC)[:2]:
         algo = ALGORITHMS[run.agent]
         state, _ = jax.jit(lambda c, k, a=algo: run_evals(a, c, init_run(a, c, k), c.num_evals))(
-            run.config, jax.random.PRNGKey(run.seed))
+            run.config, jax.random.PRNGKey(run.seed)
+        )
         alone = rescore(algo, run.config, state)
         assert float(alone.costed_return) == pytest.approx(summary.loc[run.config_id].best_policy_return, rel=1e-5)
 
@@ -83,12 +84,16 @@ def test_rescoring_episodes_are_not_the_selection_episodes():
 
 def test_seeds_are_paired_across_costs_and_agents():
     spec = SweepSpec(agents=("ppo", "dqn"), costs=(0.1, 0.3), seeds=(0, 1), total_timesteps=4096, eval_every=1024)
-    states = {(r.agent, r.cost, r.seed): init_run(ALGORITHMS[r.agent], r.config, jax.random.PRNGKey(r.seed))
-              for r in expand(spec)}
+    states = {
+        (r.agent, r.cost, r.seed): init_run(ALGORITHMS[r.agent], r.config, jax.random.PRNGKey(r.seed))
+        for r in expand(spec)
+    }
 
     def same(a, b):
-        return all(np.array_equal(np.asarray(x, float), np.asarray(y, float), equal_nan=True)
-                   for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+        return all(
+            np.array_equal(np.asarray(x, float), np.asarray(y, float), equal_nan=True)
+            for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+        )
 
     for agent in ("ppo", "dqn"):
         low, high, other_seed = states[agent, 0.1, 0], states[agent, 0.3, 0], states[agent, 0.1, 1]
@@ -114,8 +119,15 @@ def test_seeds_beyond_32_bits_are_refused(tmp_path, capsys):
 @pytest.mark.parametrize("agent", sorted(ALGORITHMS))
 def test_every_agent_rescores_with_more_episodes_than_it_evaluates(agent, monkeypatch):
     """Recurrent agents size their carry by the episode count: re-scoring (100) must not reuse eval_episodes (2)."""
-    spec = SweepSpec(agents=(agent,), costs=(0.2,), seeds=(0,), total_timesteps=8192, eval_every=8192,
-                     eval_episodes=2, hyperparams={"rescore_episodes": 5})
+    spec = SweepSpec(
+        agents=(agent,),
+        costs=(0.2,),
+        seeds=(0,),
+        total_timesteps=8192,
+        eval_every=8192,
+        eval_episodes=2,
+        hyperparams={"rescore_episodes": 5},
+    )
     (run,) = expand(spec)
     algo = ALGORITHMS[agent]
     state = init_run(algo, run.config, jax.random.PRNGKey(0))

@@ -63,9 +63,19 @@ def test_vanilla_runs_take_no_measurement_options():
     """A vanilla run is not multiplied by the wrapper's options (it has none); costed runs are."""
     from amjax.analysis.results import _planned_configs
 
-    spec = SweepSpec(agents=("dqn",), costs=(0.1,), seeds=(0, 1), vanilla=True, total_timesteps=2000, eval_every=1000,
-                     hyperparams={"instruments": "default", "instrument_costs": [(0.05, 0.3), (0.3, 0.05)],
-                                  "learning_rate": [1e-3, 3e-4]})
+    spec = SweepSpec(
+        agents=("dqn",),
+        costs=(0.1,),
+        seeds=(0, 1),
+        vanilla=True,
+        total_timesteps=2000,
+        eval_every=1000,
+        hyperparams={
+            "instruments": "default",
+            "instrument_costs": [(0.05, 0.3), (0.3, 0.05)],
+            "learning_rate": [1e-3, 3e-4],
+        },
+    )
     runs = expand(spec)
     vanilla = [r for r in runs if r.vanilla]
     assert len(runs) == 2 * 2 * 2 + 2 * 2  # costed: prices x rates x seeds; vanilla: rates x seeds
@@ -80,8 +90,14 @@ def test_vanilla_runs_take_no_measurement_options():
 
 
 def test_agent_scoped_hyperparameters():
-    spec = SweepSpec(agents=("ppo", "dqn"), costs=(0.1,), seeds=(0,), total_timesteps=4096, eval_every=1024,
-                     hyperparams={"gamma": 0.95, "ppo.gamma": [0.9, 0.99], "dqn.learning_rate": 3e-4})
+    spec = SweepSpec(
+        agents=("ppo", "dqn"),
+        costs=(0.1,),
+        seeds=(0,),
+        total_timesteps=4096,
+        eval_every=1024,
+        hyperparams={"gamma": 0.95, "ppo.gamma": [0.9, 0.99], "dqn.learning_rate": 3e-4},
+    )
     runs = expand(spec)
     ppo_runs = [r for r in runs if r.agent == "ppo"]
     (dqn_run,) = [r for r in runs if r.agent == "dqn"]
@@ -91,8 +107,11 @@ def test_agent_scoped_hyperparameters():
     from amjax.analysis.results import _planned_configs
 
     assert _planned_configs(spec.to_json()) == len(runs) == 3
-    for bad, message in (({"sarsa.gamma": 0.9}, "agent"), ({"drqn.gamma": 0.9}, "not in this sweep's agents"),
-                         ({"dqn.num_steps": 8}, "belongs to none of the agents")):
+    for bad, message in (
+        ({"sarsa.gamma": 0.9}, "agent"),
+        ({"drqn.gamma": 0.9}, "not in this sweep's agents"),
+        ({"dqn.num_steps": 8}, "belongs to none of the agents"),
+    ):
         with pytest.raises(ValueError, match=message):
             expand(SweepSpec(agents=("ppo", "dqn"), hyperparams=bad))
 
@@ -129,8 +148,9 @@ def test_best_policy_per_config_reproduces_its_best_score(full_run):
         assert saved.info["trained_env_steps"] == TINY.total_timesteps
         assert saved.config.cost == pytest.approx(row.cost) and saved.info["seed"] == row.seed
         # The driver's key for the best evaluation: split(PRNGKey(seed))[1] folded with its index.
-        eval_key = jax.random.fold_in(jax.random.split(jax.random.PRNGKey(row.seed))[1],
-                                      int(row.best_env_steps) // TINY.eval_every - 1)
+        eval_key = jax.random.fold_in(
+            jax.random.split(jax.random.PRNGKey(row.seed))[1], int(row.best_env_steps) // TINY.eval_every - 1
+        )
         score = saved.evaluate(eval_key, TINY.eval_episodes)
         assert score["costed_return"] == pytest.approx(row.best_return, rel=1e-4)
     with pytest.raises(FileNotFoundError, match="config_id: no saved policy 'nope'"):
@@ -142,8 +162,14 @@ def test_resume_after_interrupt(tmp_path, full_run, checkpoint_every_s, stop_swe
     """Interrupted after 2 of 4 chunks (with a checkpoint, or with results written past the last checkpoint),
     the rerun finishes with exactly the rows of an uninterrupted run."""
     with pytest.raises(stop_sweep_after.error):
-        run_sweep(TINY, tmp_path, progress=False, target_chunks=4, checkpoint_every_s=checkpoint_every_s,
-                  on_chunk=stop_sweep_after(2))
+        run_sweep(
+            TINY,
+            tmp_path,
+            progress=False,
+            target_chunks=4,
+            checkpoint_every_s=checkpoint_every_s,
+            on_chunk=stop_sweep_after(2),
+        )
     partial = pd.read_parquet(tmp_path / "results.parquet")
     assert len(partial) == 8 * 2
     resumed = run_sweep(TINY, tmp_path, progress=False, target_chunks=4, checkpoint_every_s=checkpoint_every_s)
@@ -162,8 +188,14 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
 
     from amjax.sweep import runner, storage
 
-    spec = SweepSpec(**{**TINY.__dict__, "costs": (0.3,), "seeds": (0,),
-                        "hyperparams": {"num_envs": 4, "num_steps": 32, "hidden": [(16,), (8,)]}})
+    spec = SweepSpec(
+        **{
+            **TINY.__dict__,
+            "costs": (0.3,),
+            "seeds": (0,),
+            "hyperparams": {"num_envs": 4, "num_steps": 32, "hidden": [(16,), (8,)]},
+        }
+    )
     events = []
     compile_batch = runner.compile_batch
 
@@ -179,8 +211,13 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
 
     monkeypatch.setattr(runner, "compile_batch", logged)
     monkeypatch.setattr(storage, "save_checkpoint", logged_save)
-    full = run_sweep(spec, tmp_path / "full", progress=False, target_chunks=4,
-                     on_chunk=lambda results: events.append(("chunk", results.config_id.nunique())))
+    full = run_sweep(
+        spec,
+        tmp_path / "full",
+        progress=False,
+        target_chunks=4,
+        on_chunk=lambda results: events.append(("chunk", results.config_id.nunique())),
+    )
     compiles = [e for e in events if e[0] == "compile"]
     first, second = (name for _, name, _ in compiles)
     assert first != second and events[:2] == compiles  # the second batch's compile began before any chunk ran
@@ -212,9 +249,33 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
 def test_sigkill_then_rerun_resumes(tmp_path):
     """A real SIGKILL of the command-line process at an arbitrary point; the same command then completes."""
     out = tmp_path / "run"
-    command = [sys.executable, "-m", "train", "sweep", "--env", "CartPole-v0", "--agent", "ppo", "--cost", "0.1",
-               "--seeds", "2", "--steps", "8192", "--eval-every", "1024", "--eval-episodes", "2",
-               "--set", "num_envs=4", "--set", "num_steps=32", "--out", str(out), "--no-progress"]
+    command = [
+        sys.executable,
+        "-m",
+        "train",
+        "sweep",
+        "--env",
+        "CartPole-v0",
+        "--agent",
+        "ppo",
+        "--cost",
+        "0.1",
+        "--seeds",
+        "2",
+        "--steps",
+        "8192",
+        "--eval-every",
+        "1024",
+        "--eval-episodes",
+        "2",
+        "--set",
+        "num_envs=4",
+        "--set",
+        "num_steps=32",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}
     process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 240
@@ -261,8 +322,24 @@ def test_folder_busy_with_another_process_is_refused(tmp_path, full_run, capsys)
     with folder_lock(out):  # as a second, live process would hold it
         with pytest.raises(FolderBusyError, match="out: .* another running process"):
             run_sweep(TINY, out, progress=False)
-        code = main(["sweep", "--agent", "ppo", "--cost", "0.5", "--seeds", "1", "--steps", "4096",
-                     "--eval-every", "1024", "--out", str(out), "--no-progress"])
+        code = main(
+            [
+                "sweep",
+                "--agent",
+                "ppo",
+                "--cost",
+                "0.5",
+                "--seeds",
+                "1",
+                "--steps",
+                "4096",
+                "--eval-every",
+                "1024",
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
         assert code == 2 and "another running process" in capsys.readouterr().err
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before  # nothing written
     run_sweep(TINY, out, progress=False, target_chunks=4)  # the lock is gone with its holder
@@ -273,8 +350,24 @@ def test_folder_with_another_sweep_is_refused(tmp_path, full_run, capsys):
     before = {p: p.stat().st_mtime_ns for p in full_run.out.rglob("*")}
     with pytest.raises(SweepMismatchError, match="different sweep"):
         run_sweep(other, full_run.out, progress=False)
-    code = main(["sweep", "--agent", "ppo", "--cost", "0.5", "--seeds", "1", "--steps", "4096",
-                 "--eval-every", "1024", "--out", str(full_run.out), "--no-progress"])
+    code = main(
+        [
+            "sweep",
+            "--agent",
+            "ppo",
+            "--cost",
+            "0.5",
+            "--seeds",
+            "1",
+            "--steps",
+            "4096",
+            "--eval-every",
+            "1024",
+            "--out",
+            str(full_run.out),
+            "--no-progress",
+        ]
+    )
     assert code == 2 and "different sweep" in capsys.readouterr().err
     assert {p: p.stat().st_mtime_ns for p in full_run.out.rglob("*")} == before  # nothing rewritten
 
@@ -318,17 +411,22 @@ def test_checkpoint_roundtrip_and_corruption(tmp_path):
 
 
 def test_summaries_by_hand():
-    rows = pd.DataFrame({
-        "config_id": ["a"] * 3 + ["b"] * 3 + ["c"] * 3,
-        "env": "E", "agent": "dqn", "vanilla": False, "cost": 0.1,
-        "seed": [0] * 3 + [1] * 3 + [2] * 3,
-        "env_steps": [1, 2, 3] * 3,
-        "eval_return": [10.0, 30.0, 20.0, 5.0, 50.0, 40.0, 1.0, 2.0, 3.0],
-        "eval_raw_return": [11.0, 33.0, 22.0, 6.0, 60.0, 44.0, 1.0, 2.0, 3.0],
-        "eval_length": [100.0] * 9,
-        "eval_measurements": [10.0, 50.0, 20.0, 100.0, 25.0, 60.0, 100.0, 100.0, 100.0],
-        "diverged": [False] * 4 + [True, True] + [False] * 3,  # b diverged at step 2: its 50 doesn't count
-    })
+    rows = pd.DataFrame(
+        {
+            "config_id": ["a"] * 3 + ["b"] * 3 + ["c"] * 3,
+            "env": "E",
+            "agent": "dqn",
+            "vanilla": False,
+            "cost": 0.1,
+            "seed": [0] * 3 + [1] * 3 + [2] * 3,
+            "env_steps": [1, 2, 3] * 3,
+            "eval_return": [10.0, 30.0, 20.0, 5.0, 50.0, 40.0, 1.0, 2.0, 3.0],
+            "eval_raw_return": [11.0, 33.0, 22.0, 6.0, 60.0, 44.0, 1.0, 2.0, 3.0],
+            "eval_length": [100.0] * 9,
+            "eval_measurements": [10.0, 50.0, 20.0, 100.0, 25.0, 60.0, 100.0, 100.0, 100.0],
+            "diverged": [False] * 4 + [True, True] + [False] * 3,  # b diverged at step 2: its 50 doesn't count
+        }
+    )
     summary = summarize(rows, []).set_index("config_id")
     assert summary.loc["a"].best_return == 30.0 and summary.loc["a"].best_measured_fraction == 0.5
     assert summary.loc["a"].measurement_reduction == pytest.approx(0.5)
@@ -346,9 +444,32 @@ def test_cli_accepts_any_budget_and_records_the_rounding(tmp_path, capsys):
     import json
 
     out = tmp_path / "run"
-    code = main(["sweep", "--agent", "ppo", "--cost", "0.1", "--seeds", "1", "--steps", "1000", "--eval-every", "300",
-                 "--eval-episodes", "2", "--set", "num_envs=4", "--set", "num_steps=32", "--set", "rescore_episodes=2",
-                 "--out", str(out), "--no-progress"])
+    code = main(
+        [
+            "sweep",
+            "--agent",
+            "ppo",
+            "--cost",
+            "0.1",
+            "--seeds",
+            "1",
+            "--steps",
+            "1000",
+            "--eval-every",
+            "300",
+            "--eval-episodes",
+            "2",
+            "--set",
+            "num_envs=4",
+            "--set",
+            "num_steps=32",
+            "--set",
+            "rescore_episodes=2",
+            "--out",
+            str(out),
+            "--no-progress",
+        ]
+    )
     assert code == 0
     assert "steps 1,000 and eval-every 300 rounded to 1,024 and 256" in capsys.readouterr().out
     meta = json.loads((out / "metadata.json").read_text())
@@ -356,14 +477,24 @@ def test_cli_accepts_any_budget_and_records_the_rounding(tmp_path, capsys):
     assert (meta["spec"]["total_timesteps"], meta["spec"]["eval_every"]) == (1024, 256)
     assert sorted(pd.read_parquet(out / "results.parquet").env_steps) == [256, 512, 768, 1024]
     with pytest.raises(ValueError, match="nearest valid values: eval_every=256, total_timesteps=1024"):
-        expand(SweepSpec(agents=("ppo",), total_timesteps=1000, eval_every=300,
-                         hyperparams={"num_envs": 4, "num_steps": 32}))
+        expand(
+            SweepSpec(
+                agents=("ppo",), total_timesteps=1000, eval_every=300, hyperparams={"num_envs": 4, "num_steps": 32}
+            )
+        )
 
 
 def test_env_defaults_apply_per_env_and_flags_override_them():
-    spec = SweepSpec(envs=("CartPole-v0", "Acrobot-v1"), agents=("ppo", "dqn"), costs=(0.1,), seeds=(0,),
-                     total_timesteps=20480, eval_every=10240, hyperparams={"dqn.gamma": 0.9},
-                     env_defaults={"Acrobot-v1": {"ppo.ent_coef": 0.0, "gamma": 0.95}})
+    spec = SweepSpec(
+        envs=("CartPole-v0", "Acrobot-v1"),
+        agents=("ppo", "dqn"),
+        costs=(0.1,),
+        seeds=(0,),
+        total_timesteps=20480,
+        eval_every=10240,
+        hyperparams={"dqn.gamma": 0.9},
+        env_defaults={"Acrobot-v1": {"ppo.ent_coef": 0.0, "gamma": 0.95}},
+    )
     configs = {(r.env, r.agent): r for r in expand(spec)}
     assert configs["Acrobot-v1", "ppo"].config.ent_coef == 0.0 and configs["Acrobot-v1", "ppo"].config.gamma == 0.95
     assert configs["CartPole-v0", "ppo"].config.ent_coef == 0.01 and configs["CartPole-v0", "ppo"].config.gamma == 0.99
@@ -377,8 +508,21 @@ def test_env_defaults_apply_per_env_and_flags_override_them():
 def test_cli_sweep_starts_each_env_from_its_tuned_defaults():
     from train.cli import build_parser, spec_from_args
 
-    args = build_parser().parse_args(["sweep", "--env", "CartPole-v0", "Acrobot-v1", "--agent", "ppo", "dqn",
-                                      "--set", "ppo.ent_coef=0.05", "--out", "x"])
+    args = build_parser().parse_args(
+        [
+            "sweep",
+            "--env",
+            "CartPole-v0",
+            "Acrobot-v1",
+            "--agent",
+            "ppo",
+            "dqn",
+            "--set",
+            "ppo.ent_coef=0.05",
+            "--out",
+            "x",
+        ]
+    )
     configs = {(r.env, r.agent): r.config for r in expand(spec_from_args(args))}
     assert configs["Acrobot-v1", "ppo"].reward_scale == 0.1  # amjax.presets's Acrobot PPO
     assert configs["Acrobot-v1", "ppo"].ent_coef == pytest.approx(0.05)  # --set wins
@@ -390,8 +534,9 @@ def test_cli_sweep_starts_each_env_from_its_tuned_defaults():
     assert acrobot_ppo.clip_value is False and cartpole_ppo.clip_value is True  # ACROBOT_PPO, run 11
     assert (cartpole_ppo.update_epochs, cartpole_ppo.num_minibatches) == (4, 4)
     assert (configs["CartPole-v0", "dqn"].hidden, configs["CartPole-v0", "dqn"].n_step) == ((64, 64), 10)
-    args = build_parser().parse_args(["sweep", "--env", "Acrobot-v1", "--agent", "ppo", "--no-env-defaults",
-                                      "--out", "x"])
+    args = build_parser().parse_args(
+        ["sweep", "--env", "Acrobot-v1", "--agent", "ppo", "--no-env-defaults", "--out", "x"]
+    )
     assert expand(spec_from_args(args))[0].config.reward_scale == 1.0
 
 
@@ -403,11 +548,28 @@ def test_the_cli_and_the_library_build_the_same_configs(env):
 
     agents = sorted({key.partition(".")[0] for key in ENV_PRESETS[env]})
     schedule = {"total_timesteps": 32768, "eval_every": 16384}
-    flags = ["sweep", "--env", env, "--agent", *agents, "--cost", "0.2", "--seeds", "1", "--steps", "32768",
-             "--eval-every", "16384", "--out", "x"]
+    flags = [
+        "sweep",
+        "--env",
+        env,
+        "--agent",
+        *agents,
+        "--cost",
+        "0.2",
+        "--seeds",
+        "1",
+        "--steps",
+        "32768",
+        "--eval-every",
+        "16384",
+        "--out",
+        "x",
+    ]
     cli = {r.agent: r.config for r in expand(spec_from_args(build_parser().parse_args(flags)))}
-    library = {r.agent: r.config for r in expand(SweepSpec(envs=(env,), agents=tuple(agents), costs=(0.2,), seeds=(0,),
-                                                           **schedule))}
+    library = {
+        r.agent: r.config
+        for r in expand(SweepSpec(envs=(env,), agents=tuple(agents), costs=(0.2,), seeds=(0,), **schedule))
+    }
     for agent in agents:
         alone = config_for(env, agent, cost=0.2, **schedule)
         assert cli[agent] == library[agent] == alone, agent
@@ -416,8 +578,12 @@ def test_the_cli_and_the_library_build_the_same_configs(env):
         assert plain == ALGORITHMS[agent].config_type(env_id=env, cost=0.2, **schedule) != alone
     off = spec_from_args(build_parser().parse_args([*flags, "--no-env-defaults"]))
     opted_out = {r.agent: r.config for r in expand(off)}
-    assert opted_out == {r.agent: r.config for r in expand(SweepSpec(envs=(env,), agents=tuple(agents), costs=(0.2,),
-                                                                     seeds=(0,), env_defaults={}, **schedule))}
+    assert opted_out == {
+        r.agent: r.config
+        for r in expand(
+            SweepSpec(envs=(env,), agents=tuple(agents), costs=(0.2,), seeds=(0,), env_defaults={}, **schedule)
+        )
+    }
     assert all(opted_out[a] == config_for(env, a, presets=False, cost=0.2, **schedule) for a in agents)
 
 

@@ -192,9 +192,7 @@ def hidden_views(rollout, inner_keys, env, params, num_rollouts: int):
     for i in range(num_rollouts):
         key = jax.random.key(1000 + i)
         run = rollout(env, params, key, jnp.asarray(controls[i]))
-        plain = inner_rollout(
-            rollout, inner_keys, run, INNER_CARTPOLE, params.env_params, key, controls[i], env.mode
-        )
+        plain = inner_rollout(rollout, inner_keys, run, INNER_CARTPOLE, params.env_params, key, controls[i], env.mode)
         np.testing.assert_array_equal(run.info["final_observation"][:, -1], 0.0)
         views.append(run.info["final_observation"][:, :-1])
         truths.append(plain.info["final_observation"])

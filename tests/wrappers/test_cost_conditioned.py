@@ -86,24 +86,30 @@ def test_the_range_is_traced():
     assert reset._cache_size() == 1
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"cost_range": (0.5, 0.1)}, "low <= high"),
-    ({"cost_range": (0.1,)}, "a pair"),
-    ({"cost_range": (-0.1, 0.2)}, "cost_range: got"),
-    ({"cost_range": (0.1, 0.2), "cost": 0.3}, "cost: a cost-conditioned env"),
-    ({"cost_range": (0.1, 0.2), "vanilla": True}, "vanilla"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"cost_range": (0.5, 0.1)}, "low <= high"),
+        ({"cost_range": (0.1,)}, "a pair"),
+        ({"cost_range": (-0.1, 0.2)}, "cost_range: got"),
+        ({"cost_range": (0.1, 0.2), "cost": 0.3}, "cost: a cost-conditioned env"),
+        ({"cost_range": (0.1, 0.2), "vanilla": True}, "vanilla"),
+    ],
+)
 def test_bad_cost_ranges_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
         amjax.make("CartPole-v0", **kwargs)
 
 
-@pytest.mark.parametrize("fields, message", [
-    ({"cost_conditioned": True, "cost_low": 0.5, "cost_high": 0.1}, "cost_low: got 0.5"),
-    ({"cost_conditioned": True, "cost_high": 0.5, "cost": 0.1}, "cost: a cost-conditioned run"),
-    ({"cost_high": 0.5}, "set cost_conditioned=True"),
-    ({"cost_conditioned": True, "vanilla": True}, "vanilla"),
-])
+@pytest.mark.parametrize(
+    "fields, message",
+    [
+        ({"cost_conditioned": True, "cost_low": 0.5, "cost_high": 0.1}, "cost_low: got 0.5"),
+        ({"cost_conditioned": True, "cost_high": 0.5, "cost": 0.1}, "cost: a cost-conditioned run"),
+        ({"cost_high": 0.5}, "set cost_conditioned=True"),
+        ({"cost_conditioned": True, "vanilla": True}, "vanilla"),
+    ],
+)
 def test_configs_check_the_cost_range(fields, message):
     for config in (DQNConfig, PPOConfig, DRQNConfig, PPORNNConfig):
         with pytest.raises(ValueError, match=message):

@@ -313,8 +313,16 @@ NOISY = {"mode": "noisy", "noise_std": 0.3}
         ("CartPole-v0", (("instruments", "default"), ("instrument_noise", (0.0, 0.1))), 0.2),
         ("Pendulum-v1", (("instruments", ((0, 1), (2,))),), 0.1),
     ],
-    ids=["CartPole-v0", "CartPole-v0-vanilla", "CartPole-v0-noisy", "Acrobot-v1", "Pendulum-v1", "options",
-         "instruments", "Pendulum-v1-instruments"],
+    ids=[
+        "CartPole-v0",
+        "CartPole-v0-vanilla",
+        "CartPole-v0-noisy",
+        "Acrobot-v1",
+        "Pendulum-v1",
+        "options",
+        "instruments",
+        "Pendulum-v1-instruments",
+    ],
 )
 def test_exported_env_passes_check_env(env_id: str, kwargs: Any, cost: float | None) -> None:
     env, params = made(env_id, **dict(kwargs))  # (name, value) pairs where a value is a tuple (hashable for made)

@@ -77,8 +77,9 @@ def expected_readings(actions, budget, prices, cost, truth):
 )
 def test_readings_match_a_python_loop(rollout, seed, actions, budget, prices, cost):
     env, params = INSTRUMENTS_ENV  # one env object: one compiled rollout (cost, prices and budget are traced)
-    params = params.replace(cost=jnp.float32(cost), budget=jnp.float32(budget),
-                            instrument_costs=jnp.asarray(prices, jnp.float32))
+    params = params.replace(
+        cost=jnp.float32(cost), budget=jnp.float32(budget), instrument_costs=jnp.asarray(prices, jnp.float32)
+    )
     always_env, always_params = ALWAYS_ENV
     key = jax.random.key(seed)
     actions = np.asarray(actions)
@@ -103,10 +104,13 @@ def test_readings_match_a_python_loop(rollout, seed, actions, budget, prices, co
         assert run.info["readings"][episode == e].sum() <= budget  # the budget is never exceeded
 
 
-@pytest.mark.parametrize("env_id, instrument, actions", [
-    ("CartPole-v0", ((0, 1, 2, 3),), lambda rng: rng.integers(0, 4, T)),
-    ("Pendulum-v1", ((0, 1, 2),), lambda rng: np.stack([rng.uniform(0, 1, T), rng.uniform(-2, 2, T)], 1)),
-])
+@pytest.mark.parametrize(
+    "env_id, instrument, actions",
+    [
+        ("CartPole-v0", ((0, 1, 2, 3),), lambda rng: rng.integers(0, 4, T)),
+        ("Pendulum-v1", ((0, 1, 2),), lambda rng: np.stack([rng.uniform(0, 1, T), rng.uniform(-2, 2, T)], 1)),
+    ],
+)
 def test_one_instrument_is_the_paper_wrapper(rollout, env_id, instrument, actions):
     """One instrument holding every feature, priced 0, gives the paper's wrapper: same actions, same outputs."""
     paper_env, paper_params = amjax.make(env_id, cost=0.3)
@@ -142,7 +146,8 @@ def test_reading_noise_is_gaussian_per_instrument():
     keys = jax.random.split(jax.random.key(2), 4000)
     obs, *_ = jax.vmap(env.step, in_axes=(0, 0, None, None))(keys, state, 3 * N, params)
     truth = jax.vmap(lambda k, s: env._env.step(k, s.env_state, 0, params.env_params)[5]["final_observation"])(
-        keys, state)
+        keys, state
+    )
     error = np.asarray(obs[:, :4]) - np.asarray(truth)
     np.testing.assert_array_equal(error[:, :2], 0.0)
     assert np.std(error[:, 2:]) == pytest.approx(0.05, rel=0.05)
@@ -164,11 +169,17 @@ def test_prices_are_traced_and_vmap():
 @pytest.mark.parametrize("seed", [0, 1])
 def test_numpy_wrapper_matches_the_jax_wrapper(seed):
     """Gymnasium's CartPole through the NumPy wrapper, step for step as the JAX wrapper with every option on."""
-    options = {"cost": 0.1, "extra_obs": ("since_measured", "last_action"), "budget": 30.0,
-               "reward_timing": "on_measure", "instrument_costs": (0.05, 0.2)}
+    options = {
+        "cost": 0.1,
+        "extra_obs": ("since_measured", "last_action"),
+        "budget": 30.0,
+        "reward_timing": "on_measure",
+        "instrument_costs": (0.05, 0.2),
+    }
     env, params = amjax.make("CartPole-v0", instruments="default", **options)
-    gym_env = ActiveMeasureWrapper(gymnasium.make("CartPole-v1", max_episode_steps=200), instruments=(CART, POLE),
-                                   **options)
+    gym_env = ActiveMeasureWrapper(
+        gymnasium.make("CartPole-v1", max_episode_steps=200), instruments=(CART, POLE), **options
+    )
     assert gym_env.observation_space.shape == env.observation_space(params).shape
     assert gym_env.action_space.n == env.action_space(params).n == 8
     rng = np.random.default_rng(seed)
@@ -176,8 +187,10 @@ def test_numpy_wrapper_matches_the_jax_wrapper(seed):
     j_obs, state = env.reset(jax.random.key(0), params)
     np.testing.assert_array_equal(obs[4:], np.asarray(j_obs)[4:])
     x, x_dot, theta, theta_dot = np.asarray(gym_env.unwrapped.state, np.float32)
-    state = state.replace(env_state=state.env_state.replace(x=x, x_dot=x_dot, theta=theta, theta_dot=theta_dot),
-                          last_obs=jnp.asarray(obs[:4]))
+    state = state.replace(
+        env_state=state.env_state.replace(x=x, x_dot=x_dot, theta=theta, theta_dot=theta_dot),
+        last_obs=jnp.asarray(obs[:4]),
+    )
     counts = np.zeros(2)
     for t in range(200):
         x, x_dot, theta, theta_dot = gym_env.unwrapped.state
@@ -211,11 +224,13 @@ def test_policies_handle_instruments():
     probs = np.array([0.05, 0.1, 0.05, 0.3, 0.05, 0.2, 0.05, 0.2])
     dist = Categorical(8, measure=True, readings=2)
     actions = jax.vmap(lambda k: dist.mode_sampling_measure(k, jnp.log(jnp.asarray(probs))))(
-        jax.random.split(jax.random.key(0), 20_000))
+        jax.random.split(jax.random.key(0), 20_000)
+    )
     actions = np.asarray(actions)
     assert np.all(actions % 2 == 1)
-    np.testing.assert_allclose(np.bincount(actions // 2, minlength=4) / 20_000, np.array([0.1, 0.3, 0.2, 0.2]) / 0.8,
-                               atol=0.015)
+    np.testing.assert_allclose(
+        np.bincount(actions // 2, minlength=4) / 20_000, np.array([0.1, 0.3, 0.2, 0.2]) / 0.8, atol=0.015
+    )
     # Box: two independent Bernoullis; the log-probability is the sum of the parts
     box = HybridGaussian(1, measure=True, readings=2)
     out = GaussianOutputs(jnp.asarray([0.5]), jnp.asarray([-1.0]), jnp.asarray([2.0, -1.0]))
@@ -227,15 +242,18 @@ def test_policies_handle_instruments():
     assert box.sample(jax.random.key(0), out).shape == (3,)
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"instruments": ((0, 1), (2,))}, "exactly once"),
-    ({"instruments": ((0, 1), (1, 2, 3))}, "exactly once"),
-    ({"instruments": ((0, 1), ())}, "non-empty"),
-    ({"instruments": "cart"}, "tuple of tuples"),
-    ({"instruments": "default", "instrument_costs": (0.1,)}, "one number per instrument"),
-    ({"instruments": "default", "instrument_noise": (0.1, -1.0)}, "instrument_noise"),
-    ({"instrument_costs": (0.1, 0.2)}, "set instruments first"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"instruments": ((0, 1), (2,))}, "exactly once"),
+        ({"instruments": ((0, 1), (1, 2, 3))}, "exactly once"),
+        ({"instruments": ((0, 1), ())}, "non-empty"),
+        ({"instruments": "cart"}, "tuple of tuples"),
+        ({"instruments": "default", "instrument_costs": (0.1,)}, "one number per instrument"),
+        ({"instruments": "default", "instrument_noise": (0.1, -1.0)}, "instrument_noise"),
+        ({"instrument_costs": (0.1, 0.2)}, "set instruments first"),
+    ],
+)
 def test_bad_instruments_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
         amjax.make("CartPole-v0", **kwargs)
@@ -248,13 +266,16 @@ def test_default_instruments_need_an_env_that_has_them():
         amjax.make("CartPole-v0", vanilla=True, instruments="default")
 
 
-@pytest.mark.parametrize("fields, message", [
-    ({"instruments": "default", "instrument_costs": (0.1, 0.2, 0.3)}, "3 values for 2 instruments"),
-    ({"instrument_costs": (0.1,)}, "set instruments first"),
-    ({"instruments": ((0, 1, 2),)}, "exactly once"),
-    ({"instruments": "default", "vanilla": True}, "vanilla"),
-    ({"instruments": "default", "instrument_costs": (0.1, -0.2)}, "instrument_costs"),
-])
+@pytest.mark.parametrize(
+    "fields, message",
+    [
+        ({"instruments": "default", "instrument_costs": (0.1, 0.2, 0.3)}, "3 values for 2 instruments"),
+        ({"instrument_costs": (0.1,)}, "set instruments first"),
+        ({"instruments": ((0, 1, 2),)}, "exactly once"),
+        ({"instruments": "default", "vanilla": True}, "vanilla"),
+        ({"instruments": "default", "instrument_costs": (0.1, -0.2)}, "instrument_costs"),
+    ],
+)
 def test_configs_check_instruments(fields, message):
     for config in (DQNConfig, PPOConfig):
         with pytest.raises(ValueError, match=message):
@@ -280,12 +301,14 @@ def test_measurement_maps_record_each_instrument(tmp_path):
         control = (batch.obs[:, 2] + 0.5 * batch.obs[:, 3] > 0).astype(jnp.int32)
         return control + N * (1 + 2 * pole), count + 1, None
 
-    mmap = analysis.record_measurements(env, params, (act, jnp.zeros(4, jnp.int32)), jax.random.key(0),
-                                        num_episodes=4, max_steps=60)
+    mmap = analysis.record_measurements(
+        env, params, (act, jnp.zeros(4, jnp.int32)), jax.random.key(0), num_episodes=4, max_steps=60
+    )
     assert mmap.readings.shape == (4, 60, 2)
     assert mmap.reading_fractions[0] == pytest.approx(1.0)
     assert mmap.reading_fractions[1] == pytest.approx(1 / 3, abs=0.02)
     assert set(np.unique(mmap.grid())) <= {1, 3, 4}
-    fig = analysis.plot_measurement_map({"cost 0.1": mmap}, instrument_names=("cart", "pole"),
-                                        path=tmp_path / "map.png")
+    fig = analysis.plot_measurement_map(
+        {"cost 0.1": mmap}, instrument_names=("cart", "pole"), path=tmp_path / "map.png"
+    )
     assert "pole 3" in fig.axes[0].get_title() and (tmp_path / "map.png").exists()

@@ -143,7 +143,7 @@ def test_budget_is_traced_and_vmaps():
 
 @pytest.mark.parametrize("instruments", [(), "default"])
 def test_a_budget_allows_at_most_its_whole_number_of_measurements(rollout, instruments):
-    """"At most B": `amjax.make` refuses a fractional budget, and one set in the params by hand counts as its
+    """ "At most B": `amjax.make` refuses a fractional budget, and one set in the params by hand counts as its
     floor (2.5 allows 2 paid measurements an episode, not 3, and the fraction left is 0 once they are made)."""
     with pytest.raises(ValueError, match="budget: got 2.5; allowed values: whole numbers >= 0"):
         amjax.make("CartPole-v0", budget=2.5, instruments=instruments)

@@ -56,8 +56,9 @@ def test_wrapper_draws_use_no_key_of_the_inner_env(mode):
     """The reading noise and the next episode's cost are not drawn from any key the inner env can reach from its
     step key (in mode "last" the inner env is handed the step key itself, in the others its first split)."""
     noise = {"noise_std": 0.1} if mode == "noisy" else {}
-    env, params = amjax.make("CartPole-v0", mode=mode, instruments="default", instrument_noise=(1.0, 1.0),
-                             cost_range=(0.0, 1.0), **noise)
+    env, params = amjax.make(
+        "CartPole-v0", mode=mode, instruments="default", instrument_noise=(1.0, 1.0), cost_range=(0.0, 1.0), **noise
+    )
     params = params.replace(env_params=params.env_params.replace(max_steps_in_episode=1))
     _, state = env.reset(jax.random.key(3), params)
     for seed in range(3):
@@ -86,8 +87,9 @@ def test_the_cost_draw_at_reset_uses_no_key_of_the_inner_reset():
 def test_reading_noise_and_the_noisy_view_are_independent():
     """In mode "noisy" a feature read by its instrument and the same feature left unread (shown with the view's
     noise) carry independent errors."""
-    env, params, state, step = _one_step_episodes(mode="noisy", noise_std=0.05, instruments="default",
-                                                   instrument_noise=(0.05, 0.05))
+    env, params, state, step = _one_step_episodes(
+        mode="noisy", noise_std=0.05, instruments="default", instrument_noise=(0.05, 0.05)
+    )
     keys = jax.random.split(jax.random.key(4), N)
     *_, read = step(keys, state, 3 * 2, params)  # both instruments read
     *_, unread = step(keys, state, 0, params)  # neither
@@ -98,4 +100,3 @@ def test_reading_noise_and_the_noisy_view_are_independent():
     for error in (reading_error, view_error):
         assert np.std(error) == pytest.approx(0.05, rel=0.05)
     assert np.abs(_correlations(reading_error, view_error)).max() < MAX_CORRELATION
-

@@ -130,8 +130,9 @@ def _collide(v1, v2, p, a, verts, normals, centroid):
     inc2 = (inc + 1) % n
     ie_a = jnp.stack([_pick(idx == inc, pv), _pick(idx == inc2, pv)])
     zero = jnp.int32(0)
-    ids_a = jnp.stack([jnp.stack([zero, inc, jnp.int32(FEATURE_FACE), zero]),
-                       jnp.stack([zero, inc2, jnp.int32(FEATURE_FACE), zero])])
+    ids_a = jnp.stack(
+        [jnp.stack([zero, inc, jnp.int32(FEATURE_FACE), zero]), jnp.stack([zero, inc2, jnp.int32(FEATURE_FACE), zero])]
+    )
     # faceB: reference face on the polygon, incident is the edge itself.
     ri2 = (poly_index + 1) % n
     ids_b = jnp.stack([zero, poly_index, zero, jnp.int32(FEATURE_FACE)])
@@ -169,8 +170,9 @@ def body_origins(pos: jax.Array, angle: jax.Array) -> jax.Array:
     return pos - jnp.stack([ox, oy], axis=-1)
 
 
-_MAX_EXTENT = float(max(np.linalg.norm(LANDER_VERTS - LANDER_CENTROID, axis=1).max(),
-                        np.linalg.norm(LEG_VERTS, axis=1).max()))
+_MAX_EXTENT = float(
+    max(np.linalg.norm(LANDER_VERTS - LANDER_CENTROID, axis=1).max(), np.linalg.norm(LEG_VERTS, axis=1).max())
+)
 
 
 def candidate_edges(pos: jax.Array) -> jax.Array:
@@ -196,8 +198,7 @@ def collide_all(pos, angle, terrain_y, edges):
     v1, v2 = jnp.stack([x1, y1], axis=-1), jnp.stack([x2, y2], axis=-1)
     origin = body_origins(pos, angle)
     over_edges = jax.vmap(_collide, in_axes=(0, 0, None, None, None, None, None))
-    hull = over_edges(v1[0], v2[0], origin[0], angle[0], LANDER_VERTS, LANDER_NORMALS,
-                      LANDER_CENTROID)
+    hull = over_edges(v1[0], v2[0], origin[0], angle[0], LANDER_VERTS, LANDER_NORMALS, LANDER_CENTROID)
     legs = jax.vmap(over_edges, in_axes=(0, 0, 0, 0, None, None, None))(
         v1[1:], v2[1:], origin[1:], angle[1:], LEG_VERTS, LEG_NORMALS, np.zeros(2, np.float32)
     )

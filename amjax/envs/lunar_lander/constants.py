@@ -104,9 +104,9 @@ def _mass(verts: np.ndarray, density: float) -> tuple[float, np.ndarray, float]:
 
 
 LANDER_VERTS = _hull([(x / SCALE, y / SCALE) for x, y in LANDER_POLY])
-LEG_VERTS = np.array(
-    [[-1, -1], [1, -1], [1, 1], [-1, 1]], np.float32
-) * np.array([LEG_W / SCALE, LEG_H / SCALE], np.float32)  # b2PolygonShape::SetAsBox order
+LEG_VERTS = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], np.float32) * np.array(
+    [LEG_W / SCALE, LEG_H / SCALE], np.float32
+)  # b2PolygonShape::SetAsBox order
 LANDER_NORMALS, LEG_NORMALS = _normals(LANDER_VERTS), _normals(LEG_VERTS)
 _m_l, _c_l, _i_l = _mass(LANDER_VERTS, 5.0)
 _m_g, _c_g, _i_g = _mass(LEG_VERTS, 1.0)

@@ -151,8 +151,17 @@ def _wind(state: EnvState, params: EnvParams):
 
 
 def _physics_step(
-    state, m_power, s_power, direction, dispersion, extra_force, params, contacts=True,
-    velocity_iterations=VELOCITY_ITERATIONS, exact_free_flight=False, jump_sweeps=False,
+    state,
+    m_power,
+    s_power,
+    direction,
+    dispersion,
+    extra_force,
+    params,
+    contacts=True,
+    velocity_iterations=VELOCITY_ITERATIONS,
+    exact_free_flight=False,
+    jump_sweeps=False,
 ):
     state, wind_f, wind_t = _wind(state, params)
     state = _engine_impulses(state, m_power, s_power, direction, dispersion)
@@ -165,9 +174,7 @@ def _physics_step(
 def initial_state(heights: jax.Array, wind_offsets: jax.Array | None = None) -> EnvState:
     """World right after Gymnasium's reset() built it (before the reset step)."""
     x0, y0 = np.float32(W / 2), np.float32(H)
-    origins = np.array(
-        [[x0, y0]] + [[W / 2 - i * LEG_AWAY / SCALE, H] for i in LEG_SIGN], np.float32
-    )
+    origins = np.array([[x0, y0]] + [[W / 2 - i * LEG_AWAY / SCALE, H] for i in LEG_SIGN], np.float32)
     angle = np.array([0.0] + [i * 0.05 for i in LEG_SIGN], np.float32)
     wind = jnp.zeros(2, jnp.int32) if wind_offsets is None else jnp.asarray(wind_offsets, jnp.int32)
     return EnvState(
@@ -209,8 +216,16 @@ def reset_from_draws(
     state = initial_state(heights, wind_offsets)
     zero = jnp.float32(0.0)
     state = _physics_step(
-        state, zero, zero, zero, jnp.zeros(2, jnp.float32), jnp.asarray(init_force, jnp.float32),
-        params, contacts=False, velocity_iterations=velocity_iterations, exact_free_flight=exact_free_flight,
+        state,
+        zero,
+        zero,
+        zero,
+        jnp.zeros(2, jnp.float32),
+        jnp.asarray(init_force, jnp.float32),
+        params,
+        contacts=False,
+        velocity_iterations=velocity_iterations,
+        exact_free_flight=exact_free_flight,
         jump_sweeps=jump_sweeps,
     )
     obs = observation(state)
@@ -231,8 +246,16 @@ def step_from_draws(
     """Gymnasium's step given the two per-step U(-1, 1) dispersion draws."""
     m_power, s_power, direction = decode_action(action, continuous)
     state = _physics_step(
-        state, m_power, s_power, direction, dispersion, jnp.zeros(2, jnp.float32), params,
-        velocity_iterations=velocity_iterations, exact_free_flight=exact_free_flight, jump_sweeps=jump_sweeps,
+        state,
+        m_power,
+        s_power,
+        direction,
+        dispersion,
+        jnp.zeros(2, jnp.float32),
+        params,
+        velocity_iterations=velocity_iterations,
+        exact_free_flight=exact_free_flight,
+        jump_sweeps=jump_sweeps,
     )
     obs = observation(state)
     reward, terminated, shp = reward_and_termination(
@@ -325,7 +348,9 @@ class LunarLander(environment.Environment[EnvState, EnvParams]):
             done,
             lambda key, params, _: self.reset_env(key, params),
             lambda key, params, stepped: stepped,
-            key_reset, params, (obs_st, state_st),
+            key_reset,
+            params,
+            (obs_st, state_st),
             capacity=RESET_CAPACITY,
         )
         info = {**info, "terminated": terminated, "truncated": truncated, "final_observation": obs_st}
@@ -336,7 +361,13 @@ class LunarLander(environment.Environment[EnvState, EnvParams]):
     ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, dict[Any, Any]]:
         dispersion = jax.random.uniform(key, (2,), jnp.float32, -1.0, 1.0)
         obs, state, reward, terminated, info = step_from_draws(
-            state, action, dispersion, params, self.continuous, self.velocity_iterations, self.exact_free_flight,
+            state,
+            action,
+            dispersion,
+            params,
+            self.continuous,
+            self.velocity_iterations,
+            self.exact_free_flight,
             self.jump_sweeps,
         )
         info = {**info, "discount": 1.0 - terminated.astype(jnp.float32)}

@@ -57,8 +57,14 @@ def joint_constraint(aa, ab, k, limit_state):
     det2 = k11 * k22 - k12 * k12
     det2 = jnp.where(det2 != 0, 1.0 / det2, det2)
     return {
-        "rax": rax, "ray": ray, "rbx": rbx, "rby": rby, "state": state,
-        "k13": k13, "k23": k23, "motor_mass": 1.0 / k33,
+        "rax": rax,
+        "ray": ray,
+        "rbx": rbx,
+        "rby": rby,
+        "state": state,
+        "k13": k13,
+        "k23": k23,
+        "motor_mass": 1.0 / k33,
         "inv3": [[det * r for r in row] for row in rows],
         "inv2": (det2 * k22, -det2 * k12, det2 * k11),
         "changed": state != limit_state,

@@ -23,6 +23,7 @@ _SOLVER = ("velocity_iterations", "exact_free_flight", "jump_sweeps")
 replay_reset = jax.jit(reset_from_draws, static_argnames=_SOLVER)
 replay_step = jax.jit(step_from_draws, static_argnames=("continuous", *_SOLVER))
 
+
 def load_gymnasium_lunar_lander() -> ModuleType:
     """Gymnasium's lunar_lander module (reference for tests/benchmarks; needs ``box2d``).
 
@@ -78,8 +79,12 @@ def free_flight_replay(
     obs_g, _ = genv.reset()
     params = EnvParams()
     obs_j, state = replay_reset(
-        recorder.draws[0], np.concatenate(recorder.draws[1:3]), params,
-        velocity_iterations=velocity_iterations, exact_free_flight=exact_free_flight, jump_sweeps=jump_sweeps,
+        recorder.draws[0],
+        np.concatenate(recorder.draws[1:3]),
+        params,
+        velocity_iterations=velocity_iterations,
+        exact_free_flight=exact_free_flight,
+        jump_sweeps=jump_sweeps,
     )
     obs_diff, rew_diff = [np.abs(np.asarray(obs_j) - obs_g).max()], []
     for _ in range(max_steps):
@@ -96,5 +101,3 @@ def free_flight_replay(
         rew_diff.append(abs(float(rew_j) - rew_g))
     genv.close()
     return {"obs_diff": np.asarray(obs_diff), "reward_diff": np.asarray(rew_diff)}
-
-

@@ -62,10 +62,16 @@ def _warm_start(bv, joints, jimp, jmot, arrays, cimp, *, bodies):
     for k, j in enumerate(joints):
         (ix, iy, iz), mot = jimp[k], jmot[k]
         (vax, vay, wa), (vbx, vby, wb) = bv[0], bv[k + 1]
-        bv[0] = (vax - INV_MASS[0] * ix, vay - INV_MASS[0] * iy,
-                 wa - INV_I[0] * (j["rax"] * iy - j["ray"] * ix + mot + iz))
-        bv[k + 1] = (vbx + INV_MASS[k + 1] * ix, vby + INV_MASS[k + 1] * iy,
-                     wb + INV_I[k + 1] * (j["rbx"] * iy - j["rby"] * ix + mot + iz))
+        bv[0] = (
+            vax - INV_MASS[0] * ix,
+            vay - INV_MASS[0] * iy,
+            wa - INV_I[0] * (j["rax"] * iy - j["ray"] * ix + mot + iz),
+        )
+        bv[k + 1] = (
+            vbx + INV_MASS[k + 1] * ix,
+            vby + INV_MASS[k + 1] * iy,
+            wb + INV_I[k + 1] * (j["rbx"] * iy - j["rby"] * ix + mot + iz),
+        )
     return tuple(bv)
 
 
@@ -80,12 +86,19 @@ def _sweep(bv, joints, jimp, jmot, arrays, cimp, patterns=None, *, bodies):
     for k in JOINT_ORDER:
         bv[0], bv[k + 1], jimp[k], jmot[k], seen[k] = materialized(
             lambda *ops, k=k: joint_velocity(*ops[:3], k, *ops[3:]),
-            bv[0], bv[k + 1], joints[k], jimp[k], jmot[k], None if patterns is None else patterns[k],
+            bv[0],
+            bv[k + 1],
+            joints[k],
+            jimp[k],
+            jmot[k],
+            None if patterns is None else patterns[k],
         )
     for idx, (con, b) in enumerate(zip(arrays, bodies, strict=True)):
         bv[b], *new = materialized(
             lambda v, con, *imp, b=b: contact_velocity(v, {**con, "b": b}, *imp),
-            bv[b], con, *cimp[idx],
+            bv[b],
+            con,
+            *cimp[idx],
         )
         cimp[idx] = tuple(new)
     return tuple(bv), tuple(jimp), tuple(jmot), tuple(cimp), tuple(seen)
@@ -218,9 +231,7 @@ def world_step(
     # -- b2ContactManager::Collide at the start of the step (positions of the last step).
     if contacts:
         edges = candidate_edges(state.pos)
-        count, face_a, lnormal, lpoint, lpts, keys = collide_all(
-            state.pos, state.angle, state.terrain_y, edges
-        )
+        count, face_a, lnormal, lpoint, lpts, keys = collide_all(state.pos, state.angle, state.terrain_y, edges)
         touching = count > 0
         # Old data of the same (body, edge) pair, then warm-start impulses matched by contact id.
         same = (edges[:, :, None] == state.contact_edge[:, None, :]) & (edges[:, :, None] >= 0)
@@ -236,9 +247,7 @@ def world_step(
         ni0, ti0 = jnp.where(valid, ni0, 0.0), jnp.where(valid, ti0, 0.0)
         # Begin/End contact events per (body, edge) pair.
         was = jnp.any(same & state.touching[:, None, :], axis=2)
-        still = jnp.any(
-            (state.contact_edge[:, :, None] == edges[:, None, :]) & touching[:, None, :], axis=2
-        )
+        still = jnp.any((state.contact_edge[:, :, None] == edges[:, None, :]) & touching[:, None, :], axis=2)
         began = touching & ~was
         ended = state.touching & ~still
         game_over = state.game_over | began[0].any()
@@ -262,15 +271,24 @@ def world_step(
     for b in CONTACT_BODY_ORDER if contacts else ():
         for e_idx in range(2):
             con = contact_constraint(
-                b, count[b, e_idx], face_a[b, e_idx], lnormal[b, e_idx], lpoint[b, e_idx],
-                lpts[b, e_idx], c[b], a[b],
+                b,
+                count[b, e_idx],
+                face_a[b, e_idx],
+                lnormal[b, e_idx],
+                lpoint[b, e_idx],
+                lpts[b, e_idx],
+                c[b],
+                a[b],
             )
             cons.append((con, e_idx, True))
     joints = [joint_constraint(a[0], a[k + 1], k, state.limit_state[k]) for k in range(2)]
     cimp = [(ni0[con["b"], e, 0], ni0[con["b"], e, 1], ti0[con["b"], e, 0], ti0[con["b"], e, 1]) for con, e, _ in cons]
     jimp = [
-        (state.joint_impulse[k, 0], state.joint_impulse[k, 1],
-         jnp.where(j["changed"] | (j["state"] == LIMIT_INACTIVE), 0.0, state.joint_impulse[k, 2]))
+        (
+            state.joint_impulse[k, 0],
+            state.joint_impulse[k, 1],
+            jnp.where(j["changed"] | (j["state"] == LIMIT_INACTIVE), 0.0, state.joint_impulse[k, 2]),
+        )
         for k, j in enumerate(joints)
     ]
     jmot = [state.motor_impulse[k] for k in range(2)]
@@ -289,14 +307,20 @@ def world_step(
             # touching contacts): those steps sweep the joints alone, with the same arithmetic; the envs with a
             # leg on the ground sweep everything, gathered into a smaller batch under vmap.
             bv, jimp, jmot, cimp = select_compacted(
-                touching_legs, gauss_seidel, _joints_only_gauss_seidel(velocity_iterations), *operands,
+                touching_legs,
+                gauss_seidel,
+                _joints_only_gauss_seidel(velocity_iterations),
+                *operands,
                 capacity=CONTACT_CAPACITY,
             )
     else:
         # A step without leg contacts takes the joints' fixed point or the jumped sweeps; the rest (a leg on the
         # ground, or a clamp pattern that changed during the jump) sweep, gathered into a smaller batch under vmap.
-        free_flight = _free_flight_fixed_point if exact_free_flight else partial(
-            _free_flight_jump, iterations=velocity_iterations, segments=JUMP_SEGMENTS)
+        free_flight = (
+            _free_flight_fixed_point
+            if exact_free_flight
+            else partial(_free_flight_jump, iterations=velocity_iterations, segments=JUMP_SEGMENTS)
+        )
         out, sweep = free_flight(*operands)
         if cons:
             sweep = sweep | touching_legs
@@ -304,7 +328,11 @@ def world_step(
             bv, jimp, jmot, cimp = out
         else:
             bv, jimp, jmot, cimp = select_compacted(
-                sweep, lambda *ops: gauss_seidel(*ops[:-1]), lambda *ops: ops[-1], *operands, out,
+                sweep,
+                lambda *ops: gauss_seidel(*ops[:-1]),
+                lambda *ops: ops[-1],
+                *operands,
+                out,
                 capacity=CONTACT_CAPACITY,
             )
 
@@ -341,7 +369,10 @@ def world_step(
             for j in range(2):
                 cx, cy, as_[b], sep = materialized(
                     lambda cx, cy, a, con, b=b, j=j: contact_position(cx, cy, a, {**con, "b": b}, j),
-                    cs[b][0], cs[b][1], as_[b], con,
+                    cs[b][0],
+                    cs[b][1],
+                    as_[b],
+                    con,
                 )
                 cs[b] = (cx, cy)
                 min_sep = jnp.minimum(min_sep, sep)
@@ -366,7 +397,9 @@ def world_step(
             (carry[0] < POSITION_ITERATIONS) & ~carry[3],
             lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS),
             lambda carry, consts: carry,
-            carry, consts, capacity=CONTACT_CAPACITY,
+            carry,
+            consts,
+            capacity=CONTACT_CAPACITY,
         )
 
     carry = vary_together((jnp.int32(0), tuple(c), tuple(a), jnp.bool_(False)))
@@ -378,7 +411,9 @@ def world_step(
             touching_legs,
             lambda carry, consts: iterate(carry, consts, POSITION_ITERATIONS, bodies),
             lambda carry, consts: joints_in_two_stages(carry, ((), consts[1])),
-            carry, (arrays, limit_states), capacity=CONTACT_CAPACITY,
+            carry,
+            (arrays, limit_states),
+            capacity=CONTACT_CAPACITY,
         )
     else:
         # The reset step already runs on chunks of the done envs (the auto-reset's select_compacted): there the
@@ -387,9 +422,7 @@ def world_step(
     _, cs, as_, solved = carry
 
     # -- Sleep (b2Island::Solve with allowSleep).
-    resting = (omega * omega <= ANGULAR_SLEEP_TOL**2) & (
-        jnp.sum(vel * vel, axis=1) <= LINEAR_SLEEP_TOL**2
-    )
+    resting = (omega * omega <= ANGULAR_SLEEP_TOL**2) & (jnp.sum(vel * vel, axis=1) <= LINEAR_SLEEP_TOL**2)
     sleep_time = jnp.where(resting, state.sleep_time + h, 0.0)
     asleep = (jnp.min(sleep_time) >= TIME_TO_SLEEP) & solved
     return state.replace(
