@@ -8,6 +8,9 @@ that vmap it themselves.
 
 from __future__ import annotations
 
+import os
+import tempfile
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
@@ -15,7 +18,15 @@ import pytest
 
 # At least two CPU devices, so that the sweep runner's sharded path (`amjax.sweep.devices`) is what the tests run
 # even on a one-core machine (before any test module imports gymnax, which starts JAX's backend).
-jax.config.update("jax_num_cpu_devices", max(2, len(__import__("os").sched_getaffinity(0))))
+jax.config.update("jax_num_cpu_devices", max(2, len(os.sched_getaffinity(0))))
+
+# One persistent XLA compilation cache for the whole suite: both xdist workers and every process a test starts (the
+# command line, the notebooks' kernels, cluster workers, killed children) reuse the programs any of them compiled,
+# within a run and across runs on one machine. A cache you set yourself (JAX_COMPILATION_CACHE_DIR) is used instead.
+COMPILE_CACHE = os.environ.setdefault(
+    "JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir()) / "amjax-tests-compile-cache")
+)
+jax.config.update("jax_compilation_cache_dir", COMPILE_CACHE)
 
 
 class Rollout(NamedTuple):

@@ -80,16 +80,11 @@ def test_install_cells_install_this_project():
         assert "amjax.use_all_cores()" in cell, f"{path.name}: does not ask for every core"
 
 
-@pytest.fixture(scope="module")
-def compilation_cache(tmp_path_factory) -> Path:
-    return tmp_path_factory.mktemp("jax_cache")
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(PARAMETERS))
-def test_notebook_runs(name, tmp_path, compilation_cache, monkeypatch):
-    # Read by JAX in the kernel process (which inherits this environment).
-    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(compilation_cache))
+def test_notebook_runs(name, tmp_path, monkeypatch):
+    # Read by JAX in the kernel process, which inherits this environment and the suite's compilation cache
+    # (tests/conftest.py); every compiled program is kept, however quick.
     monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
     notebook = nbformat.read(NOTEBOOKS / name, as_version=4)

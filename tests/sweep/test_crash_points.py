@@ -136,12 +136,6 @@ def assert_same_sweep(out: Path, reference: Path, where: str = "") -> None:
 
 
 @pytest.fixture(scope="module")
-def compile_cache(tmp_path_factory) -> Path:
-    """A persistent compilation cache shared by this module's child processes (workers, the killed child)."""
-    return tmp_path_factory.mktemp("compile_cache")
-
-
-@pytest.fixture(scope="module")
 def local_points(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
     """The uninterrupted local sweep and a copy of its folder at every commit point."""
     root = tmp_path_factory.mktemp("local")
@@ -269,7 +263,7 @@ def test_a_refused_write_stops_with_a_message_and_a_rerun_completes(
 
 
 @pytest.mark.slow
-def test_a_real_kill_leaves_what_the_copy_shows(local_points, compile_cache, tmp_path):
+def test_a_real_kill_leaves_what_the_copy_shows(local_points, tmp_path):
     """A child process running the same sweep, `os._exit`ed just after its first batch's re-scores are renamed
     into place (before its policies and marker: the instant issue 51 found), leaves the files that the copy taken
     at that point holds (checkpoints aside: their thread may have renamed the last one or not yet, in either run);
@@ -290,7 +284,7 @@ def replace(source, target, *args, **kwargs):
 os.replace = replace
 run_sweep(SweepSpec.from_json(json.loads({json.dumps(SPEC.to_json())!r})), out, **{OPTIONS!r})
 """
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2]), "JAX_COMPILATION_CACHE_DIR": str(compile_cache)}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}  # and the suite's compilation cache
     done = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 9, done.stderr[-3000:]
     assert _digest(out, skip="checkpoints") == _digest(points[name], skip="checkpoints"), (
@@ -301,12 +295,11 @@ run_sweep(SweepSpec.from_json(json.loads({json.dumps(SPEC.to_json())!r})), out, 
 
 
 @pytest.mark.slow
-def test_every_cluster_driver_commit_point_recovers(compile_cache, tmp_path_factory, monkeypatch):
+def test_every_cluster_driver_commit_point_recovers(tmp_path_factory, monkeypatch):
     """The `local:2` driver stopped just before or just after each of its renames (its merges of the workers'
     parts, its summaries), then the same call rerun: the same rows, re-scores, policies, checkpoints and markers
     as the uninterrupted cluster run, and no part left. Issue 51 found a merge stopped between its rows and its
     moves deleting the batch's checkpoint and policies."""
-    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(compile_cache))
     root = tmp_path_factory.mktemp("cluster")
     full = root / "full"
     options = {**OPTIONS, "cluster": "local:2"}
