@@ -4,7 +4,7 @@ Under ``vmap`` a ``lax.cond`` with a batched predicate becomes a select that com
 member. The functions here are ``custom_vmap`` rules that keep the work proportional to what the members need:
 
 - ``uniform_cond``: a branch that computes only the branches some member takes (both, then a select, only where
-  members disagree), at every level of nested ``vmap``;
+  members disagree), at every level of nested ``vmap``; ``cheap_cond``: the same on CPU, a select on a GPU;
 - ``select_compacted``: per member ``expensive`` where a predicate holds and ``cheap`` elsewhere, running
   ``expensive`` only on the members that need it, gathered in chunks of a smaller batch;
 - ``in_groups``: a batch run in cache-sized groups instead of all at once (under the ``"cpu"`` strategy only:
@@ -128,6 +128,17 @@ def uniform_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *oper
     return _cond_with_vmap_rule(true_fun, false_fun, batched)(pred, *operands)
 
 
+def cheap_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *operands: Any) -> Any:
+    """``lax.cond(pred, true_fun, false_fun, *operands)`` for branches a batch can afford to compute for every
+    member: `uniform_cond` under the ``"cpu"`` strategy; under ``"gpu"`` both branches and a select (no
+    conditional: a GPU would read its predicate back to the host, a round trip that costs more than the branch
+    it saves)."""
+    if strategy.is_gpu():
+        on_true, on_false = true_fun(*operands), false_fun(*operands)
+        return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
+    return uniform_cond(pred, true_fun, false_fun, *operands)
+
+
 def select_compacted(
     pred: jax.Array,
     expensive: Callable,
@@ -240,4 +251,4 @@ def _grouped(fun: Callable, group_size: int, keep_unbatched: bool) -> Callable:
     return grouped
 
 
-__all__ = ["in_groups", "select_compacted", "uniform_cond", "varying_axes"]
+__all__ = ["cheap_cond", "in_groups", "select_compacted", "uniform_cond", "varying_axes"]

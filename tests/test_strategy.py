@@ -129,3 +129,19 @@ def test_trainers_compile_one_program_per_strategy(monkeypatch) -> None:
         out = dqn.train(config, jax.random.PRNGKey(3))[1]
     assert "gpu" in seen  # traced again, under the GPU layout
     np.testing.assert_allclose(out.test.costed_return, ref.test.costed_return, rtol=1e-3, atol=1e-3)
+
+
+@pytest.mark.parametrize("pred", [[True] * 3, [False, True, False]], ids=["all", "mixed"])
+def test_cheap_cond_is_a_select_under_gpu_and_a_branch_under_cpu(pred) -> None:
+    from amjax.batching import cheap_cond
+
+    pred, x = jnp.array(pred), jnp.arange(3.0)
+
+    def fun(pred, x):
+        return jax.vmap(lambda p, x: cheap_cond(p, lambda x: x + 10.0, lambda x: x * 2.0, x))(pred, x)
+
+    for name in strategy.STRATEGIES:
+        with strategy.use(name):
+            np.testing.assert_array_equal(fun(pred, x), jnp.where(pred, x + 10.0, x * 2.0))
+            jaxpr = _jaxpr(lambda *a: fun(*a), pred, x)
+        assert ("cond[" in jaxpr) == (name == "cpu")

@@ -153,9 +153,13 @@ def evaluate(
         return t + 1, batch, agent_carry, finished | transition.episode_done, jax.tree.map(jnp.add, episodes, ended)
 
     # Every episode ends within `max_steps` (the time limit truncates it); stepping stops once all have ended
-    # (later steps would add nothing).
+    # (later steps would add nothing). On a GPU the loop runs `max_steps` steps instead: a loop that may stop early
+    # reads its predicate back to the host every step, which costs more than the steps it saves.
     initial = (jnp.int32(0), batch, carry, finished, FinishedEpisodes.zeros())
-    *_, episodes = jax.lax.while_loop(running, one_step, initial)
+    if strategy.is_gpu():
+        *_, episodes = jax.lax.fori_loop(0, max_steps, lambda _, loop: one_step(loop), initial)
+    else:
+        *_, episodes = jax.lax.while_loop(running, one_step, initial)
     return episodes
 
 
