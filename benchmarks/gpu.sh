@@ -84,14 +84,17 @@ part replicate 240 "$python" benchmarks/replicate_time.py $replicate
     echo
     echo "## Sweeps: amjax against the plain reference"
     for agent in ppo dqn; do
+        [ -e "$out/$agent.log" ] || continue  # a part not run
         echo
         if [ -s "$out/$agent.md" ]; then sed -n '/^|/p' "$out/$agent.md"; else echo "$agent: no table (see $agent.log)"; fi
     done
-    echo
-    echo "## LunarLander-v3, random actions"
-    echo
-    grep -h '^|' "$out/lander.log" | head -2
-    grep -h '^| [0-9]' "$out/lander.log" "$out/lander-cpu-layout.log"
+    if [ -s "$out/lander.log" ] || [ -s "$out/lander-cpu-layout.log" ]; then
+        echo
+        echo "## LunarLander-v3, random actions"
+        echo
+        grep -h '^|' "$out/lander.log" "$out/lander-cpu-layout.log" | head -2
+        grep -h '^| [0-9]' "$out/lander.log" "$out/lander-cpu-layout.log"
+    fi
     if [ -s "$out/demo.log" ]; then
         echo
         echo "## amjax demo"
