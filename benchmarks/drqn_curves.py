@@ -9,10 +9,16 @@ Reads one or more sweep output folders (`amjax sweep ... --out DIR`, this code's
   at that evaluation, the median re-scored reward of that best policy (100 fresh episodes) and its measured
   fraction, and the first evaluation at which the median test costed return beats CartPole-v0's "measure every
   other step" policy (200 steps at half the cost, 200 - 100 x cost) by more than a point: where the median seed
-  has learned to skip.
+  has learned to skip; and how many seeds' best evaluation measured on fewer than 45% of steps (found a skipping
+  policy).
+
+`--upto N` keeps only the evaluations up to N env steps, so folders that stopped at different points (or runs of
+different budgets) compare at one budget; the re-scored columns are then left empty for the runs it cuts short
+(they score the best policy of the whole run).
 
     python benchmarks/drqn_curves.py old=/work/runs_drqn/old_102k head=/work/runs_drqn/head_102k
     python benchmarks/drqn_curves.py head=runs/x --agents drqn --costs 0.2 0.3 --every 4  # every 4th point
+    python benchmarks/drqn_curves.py old=... head=... --upto 51200 --no-curves  # best figures at 51,200 steps
 
 A folder given as LABEL=PATH is labelled LABEL (else by its name). Runs are split by every hyperparameter column
 that varies in a folder (e.g. `--set drqn.hidden=(64,),(32,)`), so one sweep over a static field prints one row
@@ -30,6 +36,10 @@ import pandas as pd
 
 from amjax.analysis.results import hyper_columns
 from amjax.sweep import storage
+
+# A seed "skips" when its best evaluation measured on fewer than this fraction of steps (the memoryless policy
+# measures on every other step, about 50%).
+SKIPPING = 0.45
 
 
 # CartPole-v0's memoryless optimum under a cost: 200 steps, measured on every other one (the paper's DQN policy).
@@ -49,7 +59,8 @@ def load(label: str, path: str | Path) -> tuple[pd.DataFrame, pd.DataFrame | Non
     if "diverged" not in results:
         results["diverged"] = False
     varying = [c for c in hyper_columns(results) if results[c].astype(str).nunique() > 1]
-    names = results[varying].astype(str).apply(lambda row: ",".join(f"{c}={v}" for c, v in row.items()), axis=1)
+    # A field another agent of the sweep lacks (a DQN row of `--set drqn.learning_rate=...`) is left out of its name.
+    names = results[varying].apply(lambda row: ",".join(f"{c}={v}" for c, v in row.items() if not pd.isna(v)), axis=1)
     results["run"] = label + np.where(names != "", " " + names, "") if varying else label
     results["run"] = results["run"] + " " + results["agent"]
     return results, rescored
@@ -110,6 +121,7 @@ def summary_table(best: pd.DataFrame, results: pd.DataFrame, cost: float) -> pd.
                 "re-scored": f"{group.best_policy_return.median():.1f}",  # NaN where the folder has none
                 "re-scored measured": f"{100 * group.best_policy_measured_fraction.median():.0f}%",
                 "skips from": f"{under.index[0] / 1000:g}k" if len(under) else "-",
+                "skipping seeds": f"{(group.eval_measured_fraction < SKIPPING).sum()}/{group.seed.nunique()}",
             }
         )
     return pd.DataFrame(out).set_index("run")
@@ -123,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=None, help="only these seeds (default: all)")
     parser.add_argument("--every", type=int, default=1, help="print every N-th evaluation point of the curves")
     parser.add_argument("--no-curves", action="store_true", help="only the best-policy figures")
+    parser.add_argument("--upto", type=int, default=None, help="only the evaluations up to N env steps")
     args = parser.parse_args(argv)
 
     frames, bests = [], []
@@ -134,8 +147,14 @@ def main(argv: list[str] | None = None) -> int:
             results = results[results.agent.isin(args.agents)]
         if args.seeds:
             results = results[results.seed.isin(args.seeds)]
+        cut = set()
+        if args.upto is not None:
+            cut = set(results.config_id[results.env_steps > args.upto])
+            results = results[results.env_steps <= args.upto]
         frames.append(results)
-        bests.append(best_rows(results, rescored))
+        best = best_rows(results, rescored)
+        best.loc[best.config_id.isin(cut), ["best_policy_return", "best_policy_measured_fraction"]] = np.nan
+        bests.append(best)
     results, best = pd.concat(frames, ignore_index=True), pd.concat(bests, ignore_index=True)
     costs = args.costs or sorted(results.cost.unique())
     pd.set_option("display.width", 250, "display.max_columns", 100, "display.max_colwidth", 60)
