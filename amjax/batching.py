@@ -4,10 +4,11 @@ Under ``vmap`` a ``lax.cond`` with a batched predicate becomes a select that com
 member. The functions here are ``custom_vmap`` rules that keep the work proportional to what the members need:
 
 - ``uniform_cond``: a branch that computes only the branches some member takes (both, then a select, only where
-  members disagree), at every level of nested ``vmap``;
+  members disagree), at every level of nested ``vmap``; ``cheap_cond``: the same on CPU, a select on a GPU;
 - ``select_compacted``: per member ``expensive`` where a predicate holds and ``cheap`` elsewhere, running
   ``expensive`` only on the members that need it, gathered in chunks of a smaller batch;
-- ``in_groups``: a batch run in cache-sized groups instead of all at once.
+- ``in_groups``: a batch run in cache-sized groups instead of all at once (under the ``"cpu"`` strategy only:
+  `amjax.strategy`).
 
 The functions passed in must be pure functions of their operands (pass traced values as operands, do not close
 over them), as ``custom_vmap`` requires. Each is traced once, at its operands' per-member types: ``custom_vmap``
@@ -25,6 +26,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from jax.extend.core import jaxpr_as_fun
+
+from amjax import strategy
 
 
 def varying_axes(x: Any) -> frozenset:
@@ -97,7 +100,8 @@ def uniform_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *oper
     none does, and both (then selects per member) only when members disagree; the reduced predicates are themselves
     ``uniform_cond`` predicates, so nested ``vmap`` levels (configurations x envs) stay branches too. Used for
     predicates that are usually equal across a batch (DQN's "learning has started", an auto-reset that only some
-    envs need).
+    envs need). Under the ``"gpu"`` strategy a batch takes one conditional, on whether any member takes
+    ``true_fun``.
     """
 
     true_fun, false_fun = _traced(true_fun, *operands), _traced(false_fun, *operands)
@@ -107,6 +111,10 @@ def uniform_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *oper
         return _select(pred, true_all(*operands), false_all(*operands))
 
     def batched(pred, *operands):
+        if strategy.is_gpu():
+            # One conditional (a GPU reads each predicate back to the host before branching): both branches
+            # and a select where any member takes `true_fun`, else `false_fun` alone.
+            return jax.lax.cond(jnp.any(pred), mixed, lambda _, *operands: false_all(*operands), pred, *operands)
         return uniform_cond(
             jnp.all(pred),
             lambda _, *operands: true_all(*operands),
@@ -118,6 +126,17 @@ def uniform_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *oper
         )
 
     return _cond_with_vmap_rule(true_fun, false_fun, batched)(pred, *operands)
+
+
+def cheap_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *operands: Any) -> Any:
+    """``lax.cond(pred, true_fun, false_fun, *operands)`` for branches a batch can afford to compute for every
+    member: `uniform_cond` under the ``"cpu"`` strategy; under ``"gpu"`` both branches and a select (no
+    conditional: a GPU would read its predicate back to the host, a round trip that costs more than the branch
+    it saves)."""
+    if strategy.is_gpu():
+        on_true, on_false = true_fun(*operands), false_fun(*operands)
+        return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
+    return uniform_cond(pred, true_fun, false_fun, *operands)
 
 
 def select_compacted(
@@ -195,10 +214,13 @@ def in_groups(fun: Callable, group_size: int, keep_unbatched: bool = False) -> C
     XLA executes a program op by op; vmapped over hundreds of configurations, every intermediate of a minibatch
     step (e.g. [configs, 256, 64] activations) is megabytes and streams through memory between ops. Groups whose
     intermediates fit in the core's cache run the same arithmetic faster (PPO's epochs: ~12% at 256
-    configurations).
+    configurations). On a GPU each group is a serial step that leaves most of the chip idle, so under the
+    ``"gpu"`` strategy (`amjax.strategy`) ``in_groups`` returns ``fun`` itself: a vmap runs the batch at once.
     """
 
     def call(*args):
+        if strategy.is_gpu():
+            return fun(*args)
         return _grouped(_traced(fun, *args), group_size, keep_unbatched)(*args)
 
     return call
@@ -229,4 +251,4 @@ def _grouped(fun: Callable, group_size: int, keep_unbatched: bool) -> Callable:
     return grouped
 
 
-__all__ = ["in_groups", "select_compacted", "uniform_cond", "varying_axes"]
+__all__ = ["cheap_cond", "in_groups", "select_compacted", "uniform_cond", "varying_axes"]

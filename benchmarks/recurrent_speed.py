@@ -32,8 +32,19 @@ import time
 from typing import Any
 
 # The settings DRQN had before issue 13 (its defaults then); every other field is today's default.
-OLD_DRQN = {"num_envs": 4, "train_freq": 8, "gradient_steps": 4, "batch_size": 32, "seq_len": 16, "burn_in": 8,
-            "buffer_size": 2_000, "learning_rate": 2e-3, "rnn_size": 64, "hidden": (64,), "train_group": 0}
+OLD_DRQN = {
+    "num_envs": 4,
+    "train_freq": 8,
+    "gradient_steps": 4,
+    "batch_size": 32,
+    "seq_len": 16,
+    "burn_in": 8,
+    "buffer_size": 2_000,
+    "learning_rate": 2e-3,
+    "rnn_size": 64,
+    "hidden": (64,),
+    "train_group": 0,
+}
 CASES: dict[str, tuple[str, dict[str, Any]]] = {
     "drqn-old": ("drqn", OLD_DRQN),
     "drqn": ("drqn", {}),
@@ -77,10 +88,16 @@ def run_case(name: str, configs: int, steps: int, eval_every: int, devices: int 
     returns = jax.block_until_ready(compiled(config, keys))
     run_s = time.perf_counter() - start
     return {
-        "case": name, "agent": agent, "overrides": overrides, "configs": configs, "devices": devices,
+        "case": name,
+        "agent": agent,
+        "overrides": overrides,
+        "configs": configs,
+        "devices": devices,
         "steps_per_config": total,
-        "compile_s": round(compile_s, 1), "run_s": round(run_s, 1),
-        "env_steps_per_s": round(configs * total / run_s), "peak_rss_mib": round(_peak_rss_mib()),
+        "compile_s": round(compile_s, 1),
+        "run_s": round(run_s, 1),
+        "env_steps_per_s": round(configs * total / run_s),
+        "peak_rss_mib": round(_peak_rss_mib()),
         "final_eval_return_median": round(float(jnp.median(returns[:, -1])), 1),
     }
 
@@ -92,13 +109,15 @@ def _peak_rss_mib() -> float:
 def markdown(results: list[dict[str, Any]], args: argparse.Namespace) -> str:
     base = next((r for r in results if r["case"] == "drqn-old"), None)
     lines = [
-        f"# Recurrent agents at sweep scale ({datetime.date.today()})", "",
-        f"{args.configs} configurations (costs {', '.join(map(str, COSTS))} x seeds) of CartPole-v0 (mode \"last\") "
+        f"# Recurrent agents at sweep scale ({datetime.date.today()})",
+        "",
+        f'{args.configs} configurations (costs {", ".join(map(str, COSTS))} x seeds) of CartPole-v0 (mode "last") '
         f"in one vmapped program per case, split over {args.devices} CPU device(s), each case in its own process, "
         f"one after the other; {platform.node()}, {platform.processor() or platform.machine()}, "
         f"{os.cpu_count()} CPUs, CPU affinity {sorted(os.sched_getaffinity(0))}, load average at the end "
         f"{os.getloadavg()[0]:.1f}. Env steps/s: all configurations together, evaluations included, compile "
-        "excluded.", "",
+        "excluded.",
+        "",
         "| case | settings | steps / config | compile (s) | run (s) | env steps/s | vs drqn-old | peak RSS (MiB) |",
         "|---|---|---:|---:|---:|---:|---:|---:|",
     ]
@@ -118,11 +137,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--configs", type=int, default=50)
     parser.add_argument("--steps", type=int, default=20_480, help="env steps per configuration (rounded)")
     parser.add_argument("--eval-every", type=int, default=10_240)
-    parser.add_argument("--devices", type=int, default=1,
-                        help="split each case's configurations over this many CPU devices, one per core, as a sweep "
-                        "does (default 1: one program on one device)")
-    parser.add_argument("--out", help="markdown file to write (default: benchmarks/results/recurrent_speed_<date>.md, "
-                        "with _2, _3, ... added rather than overwriting an earlier result)")
+    parser.add_argument(
+        "--devices",
+        type=int,
+        default=1,
+        help="split each case's configurations over this many CPU devices, one per core, as a sweep "
+        "does (default 1: one program on one device)",
+    )
+    parser.add_argument(
+        "--out",
+        help="markdown file to write (default: benchmarks/results/recurrent_speed_<date>.md, "
+        "with _2, _3, ... added rather than overwriting an earlier result)",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     from amjax.cores import usable_cores
@@ -137,8 +163,20 @@ def main(argv: list[str] | None = None) -> int:
 
     results = []
     for name in args.cases:
-        command = [sys.executable, __file__, "--child", name, "--configs", str(args.configs), "--steps",
-                   str(args.steps), "--eval-every", str(args.eval_every), "--devices", str(args.devices)]
+        command = [
+            sys.executable,
+            __file__,
+            "--child",
+            name,
+            "--configs",
+            str(args.configs),
+            "--steps",
+            str(args.steps),
+            "--eval-every",
+            str(args.eval_every),
+            "--devices",
+            str(args.devices),
+        ]
         output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
         results.append(json.loads(output.strip().splitlines()[-1]))
         print(json.dumps(results[-1]), flush=True)

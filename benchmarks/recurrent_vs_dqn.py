@@ -61,7 +61,8 @@ def draw_maps(out: str, summary, cost: float, path: str, episodes: int = 10) -> 
         longest = longest_unmeasured_run(mmap)
         maps[f"{agent.upper()} (seed {best['seed']}), cost {cost}"] = mmap
         stats[agent] = {
-            "config_id": best["config_id"], "sweep_best_return": round(float(best["best_return"]), 2),
+            "config_id": best["config_id"],
+            "sweep_best_return": round(float(best["best_return"]), 2),
             "map_mean_costed_return": round(float(np.mean(mmap.costed_return)), 2),
             "map_mean_raw_return": round(float(np.mean(mmap.raw_return)), 2),
             "map_measured_fraction": round(mmap.measured_fraction, 3),

@@ -69,12 +69,11 @@ def on_files(files: Files, config) -> Files:
     for module in public_modules():
         content = f"::: {module}\n"
         files.append(File.generated(config, api_page(module), content=content))
-    for path in sorted((ROOT / RESULTS).iterdir()):
+    for path in sorted((ROOT / RESULTS).rglob("*")):
         if path.is_file():
+            name = path.relative_to(ROOT / RESULTS).as_posix()
             files.append(
-                File.generated(
-                    config, f"{RESULTS}/{path.name}", abs_src_path=str(path), inclusion=InclusionLevel.NOT_IN_NAV
-                )
+                File.generated(config, f"{RESULTS}/{name}", abs_src_path=str(path), inclusion=InclusionLevel.NOT_IN_NAV)
             )
     return files
 

@@ -49,6 +49,7 @@ QUICK_BUDGETS: dict[str, tuple[int, int]] = {
     "LunarLander-v3": (65_536, 32_768),
 }
 
+
 def replicate_specs(
     envs: tuple[str, ...] = tuple(REPLICATE_BUDGETS),
     agents: tuple[str, ...] = REPLICATE_AGENTS,
@@ -59,16 +60,20 @@ def replicate_specs(
     budgets = QUICK_BUDGETS if quick else REPLICATE_BUDGETS
     unknown = [env for env in envs if env not in budgets]
     if unknown:
-        raise ValueError(f"--env: no replication budget for {', '.join(unknown)}; allowed values: "
-                         f"{', '.join(budgets)}")
+        raise ValueError(f"--env: no replication budget for {', '.join(unknown)}; allowed values: {', '.join(budgets)}")
     base = SweepSpec(costs=(0.0, 0.1, 0.2, 0.3), vanilla=True)
     return {
         env: dataclasses.replace(
-            base, envs=(env,), agents=tuple(agents), seeds=tuple(range(seeds)),
-            total_timesteps=budgets[env][0], eval_every=budgets[env][1],
+            base,
+            envs=(env,),
+            agents=tuple(agents),
+            seeds=tuple(range(seeds)),
+            total_timesteps=budgets[env][0],
+            eval_every=budgets[env][1],
             # The presets as the sweep's own values (as since the grid's first run: folders keep resuming), so
             # none come again through `env_defaults`.
-            hyperparams=env_hyperparams(env, tuple(agents)), env_defaults={},
+            hyperparams=env_hyperparams(env, tuple(agents)),
+            env_defaults={},
         )
         for env in envs
     }

@@ -122,7 +122,12 @@ class DRQNState:
 
 def network(config: DRQNConfig, action_space: Any) -> RecurrentQNetwork:
     return RecurrentQNetwork(
-        action_space.n, tuple(config.hidden), config.rnn_size, config.cell, config.activation, config.dueling,
+        action_space.n,
+        tuple(config.hidden),
+        config.rnn_size,
+        config.cell,
+        config.activation,
+        config.dueling,
         config.factored_masks,
     )
 
@@ -155,11 +160,20 @@ def init(config: DRQNConfig, setup: Setup, key: jax.Array) -> DRQNState:
     warmup = config.sequence_length - config.train_freq
     envs, carry, transitions, (carries, first) = rollout(env, env_params, envs, carry, act, warmup_key, warmup)
     obs = envs.obs[0]
-    one_step = {"obs": obs, "action": jnp.int32(0), "reward": jnp.float32(0), "next_obs": obs,
-                "terminated": jnp.float32(0), "done": jnp.float32(0), "first": jnp.bool_(False)}
+    one_step = {
+        "obs": obs,
+        "action": jnp.int32(0),
+        "reward": jnp.float32(0),
+        "next_obs": obs,
+        "terminated": jnp.float32(0),
+        "done": jnp.float32(0),
+        "first": jnp.bool_(False),
+    }
     num_actions = env.action_space(env_params).n
-    one_start = {"carry": jax.tree.map(lambda c: c[0], carry),
-                 "target_q": jnp.zeros((config.seq_len, num_actions), jnp.float32)}
+    one_start = {
+        "carry": jax.tree.map(lambda c: c[0], carry),
+        "target_q": jnp.zeros((config.seq_len, num_actions), jnp.float32),
+    }
     return DRQNState(
         params=params,
         target_params=params,
@@ -174,7 +188,11 @@ def init(config: DRQNConfig, setup: Setup, key: jax.Array) -> DRQNState:
 
 
 def q_values(
-    config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], start: Any,
+    config: DRQNConfig,
+    net: RecurrentQNetwork,
+    params: Any,
+    steps: dict[str, jax.Array],
+    start: Any,
     straight: bool = False,
 ) -> tuple[jax.Array, jax.Array]:
     """Unroll a batch of stored sequences (time-major [burn_in + seq_len, batch]) from their stored start states.
@@ -190,13 +208,23 @@ def _burn_in(config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dic
     """The hidden state after the burn-in steps (no gradient); `start` if there are none."""
     if not config.burn_in:
         return start
-    carries, _ = net.apply(jax.lax.stop_gradient(params), start, steps["obs"][: config.burn_in],
-                           steps["first"][: config.burn_in], straight=True, method="unroll")
+    carries, _ = net.apply(
+        jax.lax.stop_gradient(params),
+        start,
+        steps["obs"][: config.burn_in],
+        steps["first"][: config.burn_in],
+        straight=True,
+        method="unroll",
+    )
     return jax.lax.stop_gradient(jax.tree.map(lambda c: c[-1], carries))
 
 
 def _trained_q_values(
-    config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], carry: Any,
+    config: DRQNConfig,
+    net: RecurrentQNetwork,
+    params: Any,
+    steps: dict[str, jax.Array],
+    carry: Any,
     straight: bool,
 ) -> tuple[jax.Array, jax.Array]:
     trained = jax.tree.map(lambda x: x[config.burn_in :], steps)
@@ -237,7 +265,11 @@ def target_values(
 
 
 def loss(
-    config: DRQNConfig, net: RecurrentQNetwork, params: Any, steps: dict[str, jax.Array], start: Any,
+    config: DRQNConfig,
+    net: RecurrentQNetwork,
+    params: Any,
+    steps: dict[str, jax.Array],
+    start: Any,
     q_next_target: jax.Array,
 ) -> jax.Array:
     """Mean Huber TD error over the trained steps of a batch of sequences, given the target network's bootstrap
@@ -249,8 +281,9 @@ def loss(
     return optax.huber_loss(q_taken, jax.lax.stop_gradient(targets)).mean()
 
 
-def refresh_target_values(config: DRQNConfig, net: RecurrentQNetwork, target_params: Any,
-                          buffer: ReplayBuffer) -> ReplayBuffer:
+def refresh_target_values(
+    config: DRQNConfig, net: RecurrentQNetwork, target_params: Any, buffer: ReplayBuffer
+) -> ReplayBuffer:
     """Every stored sequence's cached target values recomputed with `target_params` (after a target update), in
     chunks of `REFRESH_CHUNK` sequences. Unfilled slots get values too; they are never sampled."""
 
@@ -289,8 +322,9 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
             params, opt_state = carry
             steps, start = sequence_sample(buffer, key, config.batch_size)
             q_next_target = jnp.swapaxes(start["target_q"], 0, 1)
-            value, grads = jax.value_and_grad(loss, argnums=2)(config, setup.network, params, steps, start["carry"],
-                                                                q_next_target)
+            value, grads = jax.value_and_grad(loss, argnums=2)(
+                config, setup.network, params, steps, start["carry"], q_next_target
+            )
             updates, opt_state = optimizer.update(grads, opt_state, params)
             return (optax.apply_updates(params, updates), opt_state), value
 
@@ -335,6 +369,17 @@ DRQN = Algorithm("drqn", DRQNConfig, network, init, update, greedy, params=lambd
 train = make_train(DRQN)
 
 __all__ = [
-    "DRQN", "DRQNConfig", "DRQNState", "greedy", "init", "loss", "network", "q_values", "refresh_target_values",
-    "sequence_targets", "target_values", "train", "update",
+    "DRQN",
+    "DRQNConfig",
+    "DRQNState",
+    "greedy",
+    "init",
+    "loss",
+    "network",
+    "q_values",
+    "refresh_target_values",
+    "sequence_targets",
+    "target_values",
+    "train",
+    "update",
 ]

@@ -92,7 +92,10 @@ def measure_bias(masks: int, controls: int, prior: Any) -> nn.initializers.Initi
 
 
 def policy_head(
-    module: nn.Module, x: jax.Array, distribution: Distribution, dense: type[nn.Module] = nn.Dense,
+    module: nn.Module,
+    x: jax.Array,
+    distribution: Distribution,
+    dense: type[nn.Module] = nn.Dense,
     measure_prior: Any = 0.5,
 ) -> Any:
     """The parameters of `distribution` from features `x`, as layers of `module` (call inside its compact
@@ -105,8 +108,12 @@ def policy_head(
         controls = distribution.num_actions // masks
         if distribution.factored:  # a control categorical times a measure categorical, as joint logits
             control = dense(controls, kernel_init=scaled_init(0.01), name="control_logits")(x)
-            measure = dense(masks, kernel_init=scaled_init(0.01), bias_init=measure_bias(masks, 1, measure_prior),
-                            name="measure_logits")(x)
+            measure = dense(
+                masks,
+                kernel_init=scaled_init(0.01),
+                bias_init=measure_bias(masks, 1, measure_prior),
+                name="measure_logits",
+            )(x)
             return _joint(control, measure)
         bias = measure_bias(masks, controls, measure_prior) if distribution.measure else nn.initializers.zeros_init()
         return dense(distribution.num_actions, kernel_init=scaled_init(0.01), bias_init=bias, name="logits")(x)
@@ -114,10 +121,12 @@ def policy_head(
     log_std = module.param("log_std", nn.initializers.zeros_init(), (distribution.controls,), jnp.float32)
     measure_logit = None
     if distribution.measure:
-        measure_logit = dense(distribution.readings, kernel_init=scaled_init(0.01),
-                              bias_init=lambda key, shape, dtype=jnp.float32: jnp.full(
-                                  shape, prior_logit(measure_prior, dtype)),
-                              name="measure_logit")(x)
+        measure_logit = dense(
+            distribution.readings,
+            kernel_init=scaled_init(0.01),
+            bias_init=lambda key, shape, dtype=jnp.float32: jnp.full(shape, prior_logit(measure_prior, dtype)),
+            name="measure_logit",
+        )(x)
         measure_logit = measure_logit if distribution.readings > 1 else measure_logit[..., 0]
     return GaussianOutputs(mean, jnp.broadcast_to(log_std, mean.shape), measure_logit)
 

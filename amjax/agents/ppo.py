@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from amjax import strategy
 from amjax.agents.config import static
 from amjax.agents.networks import ActorCritic
 from amjax.agents.optim import minibatch_step
@@ -99,9 +100,11 @@ def update(config: PPOConfig, setup: Setup, state: PPOState) -> tuple[PPOState, 
     )
     log_probs = distribution.log_prob(policies, transitions.action)
 
-    # 2. Advantages: V(obs) and V(pre-reset next obs) (the latter handles truncation) in one pass, in chunks of
-    #    about 256 rows (one [T, E] pass would stream megabytes per op).
+    # 2. Advantages: V(obs) and V(pre-reset next obs) (the latter handles truncation) in one pass; on CPU in chunks
+    #    of about 256 rows (one [T, E] pass would stream megabytes per op), on a GPU at once (`amjax.strategy`).
     def values_of(params, obs):
+        if strategy.is_gpu():
+            return network.apply(params, obs)[1]
         steps = obs.shape[0]
         chunk = max((d for d in range(1, steps + 1) if steps % d == 0 and d * config.num_envs <= 256), default=1)
         return jax.lax.map(lambda o: network.apply(params, o)[1], obs, batch_size=chunk)

@@ -18,7 +18,7 @@ from flax import struct
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.optim import clipped_adam
 from amjax.agents.rollout import Transition
-from amjax.batching import uniform_cond
+from amjax.batching import cheap_cond, uniform_cond
 from amjax.validation import check_choice, check_positive_int
 
 
@@ -164,7 +164,8 @@ def td_targets(
 def learn_or_wait(learning: jax.Array, learn: Any, *operands: Any) -> tuple[Any, Any, jax.Array]:
     """`learn(*operands) -> (params, opt_state, loss)` once learning has started; before, the params and optimiser
     state of `operands[:2]` unchanged and a zero loss. A real branch in a vmapped sweep (`uniform_cond`: every
-    configuration of a batch starts learning at the same step)."""
+    configuration of a batch starts learning at the same step), also on a GPU: a select there would run the
+    gradient steps before learning starts too (40% of the updates of a 2,500-step run; docs/gpu.md)."""
 
     def wait(params: Any, opt_state: Any, *_: Any) -> tuple[Any, Any, jax.Array]:
         return params, opt_state, jnp.float32(0.0)
@@ -182,8 +183,9 @@ def target_sync(
 
 
 def update_target(config: QLearningConfig, sync: jax.Array, params: Any, target_params: Any) -> Any:
-    """The target network, blended with rate tau where `sync` (`target_sync`)."""
-    return uniform_cond(
+    """The target network, blended with rate tau where `sync` (`target_sync`); on a GPU blended for every
+    configuration and selected (`cheap_cond`: no conditional, whose predicate the host would have to read)."""
+    return cheap_cond(
         sync,
         lambda tau, params, target: optax.incremental_update(params, target, tau),
         lambda tau, params, target: target,

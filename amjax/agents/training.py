@@ -21,6 +21,7 @@ import jax.numpy as jnp
 from flax import linen as nn
 from flax import struct
 
+from amjax import strategy
 from amjax.agents.config import AgentConfig
 from amjax.agents.rollout import ActFn, EnvBatch, Transition, fast_key, reset_envs, step_envs
 from amjax.agents.setup import Setup, training_env
@@ -152,9 +153,13 @@ def evaluate(
         return t + 1, batch, agent_carry, finished | transition.episode_done, jax.tree.map(jnp.add, episodes, ended)
 
     # Every episode ends within `max_steps` (the time limit truncates it); stepping stops once all have ended
-    # (later steps would add nothing).
+    # (later steps would add nothing). On a GPU the loop runs `max_steps` steps instead: a loop that may stop early
+    # reads its predicate back to the host every step, which costs more than the steps it saves.
     initial = (jnp.int32(0), batch, carry, finished, FinishedEpisodes.zeros())
-    *_, episodes = jax.lax.while_loop(running, one_step, initial)
+    if strategy.is_gpu():
+        *_, episodes = jax.lax.fori_loop(0, max_steps, lambda _, loop: one_step(loop), initial)
+    else:
+        *_, episodes = jax.lax.while_loop(running, one_step, initial)
     return episodes
 
 
@@ -243,17 +248,19 @@ def make_train(algo: Algorithm) -> Callable[[AgentConfig, jax.Array], tuple[RunS
 
     Concrete configs are validated before compiling; under `jax.vmap` (a stacked config of traced leaves) the
     static fields are still checked and the traced ones are left to the caller (the sweep runner checks them).
+    The program is compiled for the strategy current at the call (`amjax.strategy`), one per strategy.
     """
 
-    @jax.jit
-    def compiled(config: AgentConfig, key: jax.Array) -> tuple[RunState, EvalRow]:
-        return run_evals(algo, config, init_run(algo, config, key), config.num_evals)
+    @partial(jax.jit, static_argnums=2)
+    def compiled(config: AgentConfig, key: jax.Array, strategy_name: str) -> tuple[RunState, EvalRow]:
+        with strategy.use(strategy_name):
+            return run_evals(algo, config, init_run(algo, config, key), config.num_evals)
 
     def train(config: AgentConfig, key: jax.Array) -> tuple[RunState, EvalRow]:
         if type(config) is not algo.config_type:
             raise TypeError(f"config: expected {algo.config_type.__name__}, got {type(config).__name__}")
         config.validate()
-        return compiled(config, key)
+        return compiled(config, key, strategy.current())
 
     train.__doc__ = f"Train {algo.name}: `train(config, key) -> (RunState, EvalRow per evaluation)`."
     return train

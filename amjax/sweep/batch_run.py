@@ -154,15 +154,15 @@ def train_batch(
     evals_per_chunk = programs.evals_per_chunk
     ckpt_path = storage.checkpoint_path(out, batch.name)
     configs = programs.configs
-    states = jax.device_get(programs.init(configs, programs.keys))
+    states = programs.init(configs, programs.keys)  # plain (strongly typed) arrays, left on the device
     evals_done = 0
     # A checkpoint is used only if the rows it went past are all on disk (they are written first; a folder whose
     # rows were lost trains the batch again from the start, which reproduces them).
     if ckpt_path.exists() and storage.checkpoint_evals(ckpt_path) <= _evals_with_rows(batch, results):
-        real_rows, evals_done = storage.load_checkpoint(ckpt_path, _real(batch, states))
+        real_rows, evals_done = storage.load_checkpoint(ckpt_path, _real(batch, jax.device_get(states)))
         states = batch.pad(real_rows)
-    # Plain (strongly typed) arrays, fresh or restored alike, so both hit one compiled chunk program, split over
-    # the devices as it expects.
+    # Fresh or restored, the states are split over the devices as the compiled chunk program expects (a fresh
+    # batch's stay on the accelerator: a DQN batch's replay buffers are gigabytes).
     sharding = config_sharding(list(devices))
     configs, states = jax.device_put((configs, states), sharding)
     bar.update(len(batch.runs) * evals_done * config0.eval_every)

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from amjax import strategy
 from amjax.agents import ALGORITHMS, Algorithm, init_run, rescore, run_evals, stack_configs
 from amjax.sweep.devices import config_sharding, sharded_jit, sweep_devices
 from amjax.sweep.grid import RunConfig, group_runs
@@ -62,33 +63,62 @@ def plan_batches(runs: Sequence[RunConfig], max_batch: int, num_devices: int = 1
     return batches
 
 
-@functools.cache
 def compiled_programs(
-    algo: Algorithm, chunk_evals: int, devices: tuple[jax.Device, ...] | None = None
+    algo: Algorithm,
+    chunk_evals: int,
+    devices: tuple[jax.Device, ...] | None = None,
+    strategy_name: str | None = None,
 ) -> tuple[Callable, Callable]:
     """Jitted init and chunk functions of an algorithm; cached so reruns in one process reuse the compiled
     programs (jax caches one per shape and static config). The chunk spreads the configurations over `devices`
-    (default: `sweep_devices()`); give it arguments placed with `config_sharding(devices)`."""
-    devices = list(devices or sweep_devices())
+    (default: `sweep_devices()`); give it arguments placed with `config_sharding(devices)`. Both trace with
+    `strategy_name` (default: `amjax.strategy.current()`), whenever they are traced."""
+    devices = tuple(devices or sweep_devices())
+    return _compiled_programs(algo, chunk_evals, devices, strategy_name or strategy.current())
+
+
+@functools.cache
+def _compiled_programs(
+    algo: Algorithm, chunk_evals: int, devices: tuple[jax.Device, ...], strategy_name: str
+) -> tuple[Callable, Callable]:
+    def init_one(config, key):
+        with strategy.use(strategy_name):
+            state = init_run(algo, config, key)
+        # Plain (strongly typed) leaves, as the chunk program takes them: fresh states go to it without a host trip.
+        return jax.tree.map(lambda x: jax.lax.convert_element_type(x, x.dtype), state)
+
+    def chunk_one(config, state):
+        with strategy.use(strategy_name):
+            return run_evals(algo, config, state, chunk_evals)
+
     # Initialisation is vmapped like the chunk (the networks' initialisers are QR-free: no batched linear algebra,
     # so no jaxlib CPU deadlock, research notes). A loop over configurations (lax.map) would be compiled as one
     # kernel under amjax's small-loop option, body and all: 47 s instead of 17.5 for LunarLander-v3's Dueling DQN,
     # whose initialisation steps the envs (docs/lunar_lander.md, "Initialisation vmapped").
-    init = jax.jit(jax.vmap(lambda config, key: init_run(algo, config, key)))
-    batched_chunk = jax.vmap(lambda config, state: run_evals(algo, config, state, chunk_evals))
+    init = jax.jit(jax.vmap(init_one))
     # Shardings pinned on both sides, so the states a chunk returns (zero-size arrays included, which XLA would
     # otherwise return replicated) are placed as the next chunk expects them.
-    sharding = config_sharding(devices)
-    chunk = sharded_jit(batched_chunk, devices, donate_argnums=1, in_shardings=sharding, out_shardings=sharding)
+    sharding = config_sharding(list(devices))
+    chunk = sharded_jit(
+        jax.vmap(chunk_one), list(devices), donate_argnums=1, in_shardings=sharding, out_shardings=sharding
+    )
     return init, chunk
 
 
+def rescore_program(algo: Algorithm, devices: tuple[jax.Device, ...], strategy_name: str | None = None) -> Callable:
+    """Jitted re-scoring of every configuration's best policy (`training.rescore`), split over `devices`, traced
+    with `strategy_name` (default: `amjax.strategy.current()`)."""
+    return _rescore_program(algo, tuple(devices), strategy_name or strategy.current())
+
+
 @functools.cache
-def rescore_program(algo: Algorithm, devices: tuple[jax.Device, ...]) -> Callable:
-    """Jitted re-scoring of every configuration's best policy (`training.rescore`), split over `devices`."""
+def _rescore_program(algo: Algorithm, devices: tuple[jax.Device, ...], strategy_name: str) -> Callable:
+    def rescore_one(config, state):
+        with strategy.use(strategy_name):
+            return rescore(algo, config, state)
+
     sharding = config_sharding(list(devices))
-    batched = jax.vmap(lambda config, state: rescore(algo, config, state))
-    return sharded_jit(batched, list(devices), in_shardings=sharding, out_shardings=sharding)
+    return sharded_jit(jax.vmap(rescore_one), list(devices), in_shardings=sharding, out_shardings=sharding)
 
 
 @dataclass(frozen=True)

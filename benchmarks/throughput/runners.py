@@ -57,7 +57,7 @@ def _compile_amjax(case: dict[str, Any]) -> SweepPrograms:
     init_compiled = init.lower(stacked, keys).compile()
     compile_s = time.perf_counter() - start
     # The chunk is lowered with arrays placed as the runner places them (a first init run, not timed).
-    first_states = jax.device_put(jax.device_get(init_compiled(stacked, keys)), sharding)
+    first_states = jax.device_put(init_compiled(stacked, keys), sharding)
     sharded_configs = jax.device_put(stacked, sharding)
     start = time.perf_counter()
     chunk_compiled = chunk.lower(sharded_configs, first_states).compile()
@@ -76,9 +76,8 @@ def build_amjax(case: dict[str, Any]) -> dict[str, Any]:
     p = _compile_amjax(case)
 
     def run():
-        states = p.init(p.stacked, p.keys)
-        # As the runner does (fresh or restored states alike): a host round trip, then split over the devices.
-        states = jax.device_put(jax.device_get(states), p.sharding)
+        # As the runner does with a fresh batch: the states stay on the device, split over the devices.
+        states = jax.device_put(p.init(p.stacked, p.keys), p.sharding)
         last = None
         for _ in range(p.chunks):
             states, rows = p.chunk(p.sharded_configs, states)  # states are donated, as in the runner

@@ -39,8 +39,17 @@ PROBE = {"env_id": "MemoryProbe-v0", "vanilla": True, "eval_episodes": 64}
 # Small budgets: the recurrent agents reach 1.0 at their first evaluation on 2 cores.
 PROBE_CONFIGS = {
     "drqn": DRQNConfig(
-        total_timesteps=4000, eval_every=2000, learning_starts=500, num_envs=4, buffer_size=500, seq_len=8, burn_in=2,
-        train_freq=5, target_update_interval=200, exploration_fraction=0.3, **PROBE,
+        total_timesteps=4000,
+        eval_every=2000,
+        learning_starts=500,
+        num_envs=4,
+        buffer_size=500,
+        seq_len=8,
+        burn_in=2,
+        train_freq=5,
+        target_update_interval=200,
+        exploration_fraction=0.3,
+        **PROBE,
     ),
     "ppo-rnn": PPORNNConfig(
         total_timesteps=6400, eval_every=3200, num_envs=8, num_steps=40, num_minibatches=2, **PROBE
@@ -136,8 +145,18 @@ def _probe_obs(values):
 
 # Two envs whose first episodes differ (cues, lengths) and whose second episodes are identical.
 OBS = _probe_obs([[1, -1], [0, 0.5], [0, 0], [0, -0.7], [0, 0.3], [-1, -1], [0, 0], [0, 0]])
-FIRST = jnp.asarray([[True, True], [False, False], [False, False], [False, True], [False, False],
-                     [True, True], [False, False], [False, False]])
+FIRST = jnp.asarray(
+    [
+        [True, True],
+        [False, False],
+        [False, False],
+        [False, True],
+        [False, False],
+        [True, True],
+        [False, False],
+        [False, False],
+    ]
+)
 SECOND = 5  # where the identical second episodes start
 
 
@@ -190,15 +209,20 @@ def test_straight_unroll_equals_the_loop(cell):
     """The straight-line unroll (burn-ins, target values) computes what the loop does, resets included."""
     config = PROBE_CONFIGS["drqn"].replace(burn_in=2, seq_len=6, cell=cell)
     net, params = _net(config), drqn.init(config, _setup(config), jax.random.PRNGKey(0)).params
-    start = jax.tree.map(lambda c: jax.random.normal(jax.random.PRNGKey(1), c.shape),
-                         zero_carry(cell, config.rnn_size, (2,)))
+    start = jax.tree.map(
+        lambda c: jax.random.normal(jax.random.PRNGKey(1), c.shape), zero_carry(cell, config.rnn_size, (2,))
+    )
     looped = net.apply(params, start, OBS, FIRST, method="unroll")
     straight = net.apply(params, start, OBS, FIRST, straight=True, method="unroll")
     for a, b in zip(jax.tree.leaves(looped), jax.tree.leaves(straight), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
     steps = {"obs": OBS, "first": FIRST, "next_obs": OBS[::-1]}
-    np.testing.assert_allclose(drqn.target_values(config, net, params, steps, start),
-                               drqn.q_values(config, net, params, steps, start)[1], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        drqn.target_values(config, net, params, steps, start),
+        drqn.q_values(config, net, params, steps, start)[1],
+        rtol=1e-5,
+        atol=1e-6,
+    )
 
 
 def test_ppo_rnn_hidden_state_resets_inside_update_sequences():
@@ -309,8 +333,9 @@ def test_cached_target_values_follow_the_target_network(monkeypatch):
     before the last target update (refreshed there, in chunks with a remainder) and after it (computed when
     stored)."""
     monkeypatch.setattr(drqn, "REFRESH_CHUNK", 10)  # 24 slots: chunks of 10, 10 and 4
-    config = PROBE_CONFIGS["drqn"].replace(burn_in=3, seq_len=8, train_freq=4, learning_starts=40,
-                                           target_update_interval=48, buffer_size=24)
+    config = PROBE_CONFIGS["drqn"].replace(
+        burn_in=3, seq_len=8, train_freq=4, learning_starts=40, target_update_interval=48, buffer_size=24
+    )
     setup = _setup(config)
     state = drqn.init(config, setup, jax.random.PRNGKey(0))
     initial_target = state.target_params
@@ -350,8 +375,12 @@ def test_burn_in_warms_up_the_state_without_gradient_or_loss():
     def loss_of(obs, steps):
         return drqn.loss(config, _net(config), state.params, {**steps, "obs": obs}, start, q_next_target)
 
-    noisy = {**steps, "reward": steps["reward"].at[:b].add(7.0), "action": steps["action"].at[:b].set(1),
-             "terminated": steps["terminated"].at[:b].set(1.0)}
+    noisy = {
+        **steps,
+        "reward": steps["reward"].at[:b].add(7.0),
+        "action": steps["action"].at[:b].set(1),
+        "terminated": steps["terminated"].at[:b].set(1.0),
+    }
     assert float(loss_of(steps["obs"], noisy)) == pytest.approx(float(loss_of(steps["obs"], steps)), rel=1e-6)
     grad = jax.grad(loss_of)(steps["obs"], steps)
     assert np.all(np.asarray(grad[:b]) == 0)

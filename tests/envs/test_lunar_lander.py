@@ -291,6 +291,50 @@ def test_large_batch_steps_in_groups(monkeypatch) -> None:
     np.testing.assert_allclose(reward, ref_reward, atol=1e-3)
 
 
+def test_gpu_layout_steps_as_the_cpu_layout(monkeypatch) -> None:
+    """`amjax.strategy`'s GPU layout of the step (the batch at once instead of in `STEP_GROUP` groups, the solves
+    unmaterialised instead of behind conditionals) gives what the CPU layout gives, step by step from states spread
+    over episodes (contacts and auto-resets included), to XLA's rounding."""
+    from amjax import strategy
+    from amjax.envs.lunar_lander import env as env_module
+
+    monkeypatch.setattr(env_module, "STEP_GROUP", 64)  # read when `step` is traced: the CPU layout steps in groups
+    lander = LunarLander(velocity_iterations=4)  # a short solver; the layouts are the same
+    params = lander.default_params
+    n, steps = 16, 100
+
+    @jax.jit
+    def collect(key):
+        _, state = jax.vmap(lander.reset, (0, None))(jax.random.split(key, n), params)
+
+        def body(state, key):
+            keys = jax.random.split(key, n + 1)
+            actions = jax.random.randint(keys[0], (n,), 0, 4)
+            new_state = jax.vmap(lander.step, (0, 0, 0, None))(keys[1:], state, actions, params)[1]
+            return new_state, (state, keys[1:], actions)
+
+        return jax.lax.scan(body, state, jax.random.split(key, steps))[1]
+
+    with strategy.use("cpu"):
+        states, keys, actions = jax.tree.map(lambda x: x.reshape(steps * n, *x.shape[2:]), collect(jax.random.key(8)))
+    assert int(jnp.any(states.touching[:, 1:], axis=(1, 2)).sum()) > 0 and int(jnp.sum(states.time == 0)) > n
+
+    def step_all(name):
+        def step(keys, states, actions):  # a new function per layout: JAX caches a traced function's program
+            with strategy.use(name):
+                return jax.vmap(lander.step, (0, 0, 0, None))(keys, states, actions, params)
+
+        return jax.jit(step)(keys, states, actions), str(jax.make_jaxpr(step)(keys, states, actions))
+
+    (obs, state, reward, terminated, truncated, _), gpu_jaxpr = step_all("gpu")
+    (ref_obs, ref_state, ref_reward, ref_terminated, ref_truncated, _), cpu_jaxpr = step_all("cpu")
+    assert gpu_jaxpr.count("cond[") < cpu_jaxpr.count("cond[")  # the solves' conditionals are gone
+    assert (terminated == ref_terminated).all() and (truncated == ref_truncated).all()
+    np.testing.assert_allclose(obs, ref_obs, atol=1e-4)
+    np.testing.assert_allclose(reward, ref_reward, atol=1e-3)
+    np.testing.assert_allclose(state.pos, ref_state.pos, atol=1e-4)
+
+
 # --- parameter validation -------------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("field", "value"),

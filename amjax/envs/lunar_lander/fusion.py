@@ -8,6 +8,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from amjax import strategy
 from amjax.batching import varying_axes
 
 
@@ -20,8 +21,13 @@ def materialized(fn: Callable, *operands: Any) -> Any:
     conditional is a fusion boundary, so ``fn`` runs behind an always-taken ``lax.cond`` on an opaque unbatched
     zero (an ``optimization_barrier``: XLA cannot fold it, and under ``vmap`` it stays a branch, not a select).
     The same arithmetic, faster to run and to compile (measurements in docs/lunar_lander.md).
-    """
 
+    Under the ``"gpu"`` strategy (`amjax.strategy`) ``fn`` runs plainly: a GPU reads a conditional's predicate back
+    to the host before it branches, one round trip per solve (over a thousand per step), and recomputing a
+    producer inside its consumers costs a GPU far less than launching kernels to store it.
+    """
+    if strategy.is_gpu():
+        return fn(*operands)
     fn = jax.jit(fn)  # traced once: the branch below reuses the trace that eval_shape made
 
     def never(*ops):

@@ -1,0 +1,114 @@
+#!/usr/bin/env bash
+# The GPU figures of docs/guide/gpu.md in one go, written as one markdown file that names the device. Parts (about
+# 7.5 minutes together on one H200; each case of the first two is a fresh process, ~37 s):
+#   ppo, dqn           PPO and Dueling DQN sweeps at 1,024 and 4,096 configurations, amjax against the plain
+#                      single-file reference (python -m benchmarks.throughput, the cases of issue 58's table);
+#   lander             the LunarLander-v3 port at 65,536 to 1,048,576 envs (benchmarks/lunar_lander_batch.py);
+#   lander-cpu-layout  the port at 65,536 envs with the CPU layout (--strategy cpu), every backend's before
+#                      amjax.strategy;
+# and, only when GPU_PARTS names them (not timed yet on a GPU):
+#   demo               `python -m train demo`'s wall time (~1 minute);
+#   replicate          benchmarks/replicate_time.py's projection of `amjax replicate` for LunarLander-v3's PPO and
+#                      Dueling DQN (compiles dominate on a GPU).
+# Each part has a time limit, so a slow part costs its own rows, not the rest.
+#
+#   bash benchmarks/gpu.sh [OUT_DIR]        # default: benchmarks/results/gpu_<date>
+#   GPU_QUICK=1 bash benchmarks/gpu.sh /tmp/gpu-smoke   # tiny sizes: checks the script on a CPU in ~5 minutes
+#   GPU_PARTS="ppo dqn demo" bash benchmarks/gpu.sh     # the parts named only
+#
+# On a machine that cannot reach the package index (jax, flax, optax, chex, pandas and pyarrow there, no gymnax),
+# put the wheels of gymnax 1.0.1, gymnasium 1.3.0 and farama-notifications in .whl/ at the repository's root
+# (shared/research/gpu.md says how to download them): they are installed into a temporary folder first.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+out=${1:-benchmarks/results/gpu_$(date +%Y-%m-%d)}
+mkdir -p "$out"
+python=${PYTHON:-python3}
+
+if ! "$python" -c "import gymnax" 2>/dev/null; then
+    if ! ls .whl/*.whl >/dev/null 2>&1; then
+        echo "gymnax is not installed and .whl/ holds no wheels to install it from (see the comment above)" >&2
+        exit 2
+    fi
+    site=$(mktemp -d)
+    "$python" -m pip install -q --no-index --no-deps --no-compile --target "$site" .whl/*.whl || exit 2
+    export PYTHONPATH="$site${PYTHONPATH:+:$PYTHONPATH}"
+fi
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+
+if [ -n "${GPU_QUICK:-}" ]; then
+    sizes=4,8; ppo_steps=4:5120,8:5120; dqn_steps=4:2500,8:2500
+    lander="--envs 256 512 --steps 5 --burn-in 5"; lander_cpu="--envs 256 --steps 5 --burn-in 5"
+    replicate="--env CartPole-v0 --agent ppo --seeds 2 --probe-steps 1024"
+else
+    sizes=1024,4096; ppo_steps=1024:51200,4096:5120; dqn_steps=1024:51200,4096:2500
+    lander="--envs 65536 262144 1048576 --steps 25 --burn-in 100"; lander_cpu="--envs 65536 --steps 10 --burn-in 10"
+    replicate="--env LunarLander-v3 --agent ppo dqn"
+fi
+
+device=$("$python" -c "import jax; d = jax.devices()[0]; print(f'{d.device_kind} ({jax.default_backend()}), jax {jax.__version__}')")
+{
+    echo "# GPU figures: $device"
+    echo
+    echo "Taken $(date -u +%Y-%m-%dT%H:%MZ) at commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown) by \`bash benchmarks/gpu.sh\`; one run each."
+    command -v nvidia-smi >/dev/null && echo && nvidia-smi -L | sed 's/ (UUID.*//; s/^/    /'
+} >"$out/gpu.md"
+
+parts=${GPU_PARTS:-ppo dqn lander lander-cpu-layout}
+part() {  # part TITLE SECONDS COMMAND...: run COMMAND with a time limit, its output in $out/TITLE.log
+    local title=$1 limit=$2
+    shift 2
+    case " $parts " in *" $title "*) ;; *) return 0 ;; esac
+    echo "== $title (at most ${limit}s)"
+    local start=$SECONDS
+    timeout "$limit" "$@" 2>&1 | tee "$out/$title.log"
+    local status=${PIPESTATUS[0]}
+    echo "== $title: exit $status after $((SECONDS - start))s"
+    return 0
+}
+
+throughput=("$python" -m benchmarks.throughput --impls amjax,reference --no-sb3 --overhead "" --sizes "$sizes")
+part ppo 170 "${throughput[@]}" --agents ppo --steps $ppo_steps --markdown "$out/ppo.md" --json "$out/ppo.json"
+part dqn 180 "${throughput[@]}" --agents dqn --steps $dqn_steps --markdown "$out/dqn.md" --json "$out/dqn.json"
+part lander 110 "$python" benchmarks/lunar_lander_batch.py $lander --json "$out/lander.jsonl"
+part lander-cpu-layout 60 "$python" benchmarks/lunar_lander_batch.py $lander_cpu --strategy cpu \
+    --json "$out/lander.jsonl"
+demo_dir=$(mktemp -d)
+start=$SECONDS
+touch "$out/lander.log" "$out/lander-cpu-layout.log" "$out/demo.log" "$out/replicate.log"
+part demo 90 "$python" -m train demo --out "$demo_dir/demo" --no-progress
+demo_s=$((SECONDS - start))
+part replicate 240 "$python" benchmarks/replicate_time.py $replicate
+
+{
+    echo
+    echo "## Sweeps: amjax against the plain reference"
+    for agent in ppo dqn; do
+        echo
+        if [ -s "$out/$agent.md" ]; then sed -n '/^|/p' "$out/$agent.md"; else echo "$agent: no table (see $agent.log)"; fi
+    done
+    echo
+    echo "## LunarLander-v3, random actions"
+    echo
+    grep -h '^|' "$out/lander.log" | head -2
+    grep -h '^| [0-9]' "$out/lander.log" "$out/lander-cpu-layout.log"
+    if [ -s "$out/demo.log" ]; then
+        echo
+        echo "## amjax demo"
+        echo
+        if [ -s "$demo_dir/demo/summary.csv" ]; then
+            echo "\`python -m train demo\`: ${demo_s} s wall, start-up and compiles included."
+        else
+            echo "\`python -m train demo\` did not finish (see demo.log)."
+        fi
+    fi
+    if [ -s "$out/replicate.log" ]; then
+        echo
+        echo "## amjax replicate, projected (benchmarks/replicate_time.py $replicate)"
+        echo
+        echo '```'
+        cat "$out/replicate.log"
+        echo '```'
+    fi
+} >>"$out/gpu.md"
+cat "$out/gpu.md"
