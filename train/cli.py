@@ -37,6 +37,7 @@ from train.flags import (  # noqa: E402
     add_logging_arguments,
     cluster_from_args,
     disk_error_message,
+    executor_for,
     make_loggers,
 )
 from train.presets import PRESETS  # noqa: E402
@@ -340,12 +341,11 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         result = run_sweep(
             spec,
             args.out,
+            executor_for(cluster, cluster_parameters),
             max_batch=max_batch,
             progress=not args.no_progress,
             loggers=loggers,
             metadata=metadata,
-            cluster=cluster,
-            cluster_parameters=cluster_parameters,
         )
     except (SweepMismatchError, FolderBusyError, SweepTooLargeError, UnreadableFileError, ClusterError) as error:
         print(f"{parser.prog}: error: {error}", file=sys.stderr)

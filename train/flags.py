@@ -89,6 +89,16 @@ def cluster_from_args(args: argparse.Namespace) -> tuple[str | None, dict[str, A
     return target, parameters
 
 
+def executor_for(cluster: str | None, parameters: dict[str, Any], compile_queue: Any = None) -> Any:
+    """The executor `cluster_from_args`'s values describe: the cluster's jobs, else this process (compiling ahead
+    on `compile_queue` if given)."""
+    from amjax.sweep import ClusterExecutor, LocalExecutor
+
+    if cluster is not None:
+        return ClusterExecutor(cluster, parameters)
+    return LocalExecutor(compile_queue=compile_queue)
+
+
 # What a full or protected disk raises: the command stops with a message, not a traceback.
 DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS}
 

@@ -18,7 +18,7 @@ from typing import Any
 import pandas as pd
 
 from amjax.files import atomic_write, folder_lock, remove_partial_writes
-from train.flags import add_cluster_arguments, add_logging_arguments, cluster_from_args, make_loggers
+from train.flags import add_cluster_arguments, add_logging_arguments, cluster_from_args, executor_for, make_loggers
 from train.presets import REPLICATE_BUDGETS, replicate_specs
 
 # The paper ran its recurrent agent (DRQN) on CartPole only; the default grid follows it.
@@ -177,12 +177,10 @@ def _replicate(
             run_sweep(
                 spec,
                 out / env,
+                executor_for(cluster, cluster_parameters, compile_queue=compiler),
                 max_batch=args.max_batch,
                 progress=not args.no_progress,
                 loggers=make_loggers(args, str(out / env)),
-                cluster=cluster,
-                cluster_parameters=cluster_parameters,
-                compile_queue=compiler,
             )
             wall_time = WallTime(out / env / "wall_time.json", new_invocation=False)
             with COMPILE_LOCK:  # the report's measurement maps compile; never beside the queue's compiles

@@ -1,9 +1,15 @@
-"""Sweeps: grids of configurations trained in compiled vmapped batches, with results, summaries and resume."""
+"""Sweeps: grids of configurations trained in compiled vmapped batches, with results, summaries and resume.
+
+Layers, bottom to top: `grid` (the configurations) -> `batches` (compiled groups) -> `storage` (files) ->
+`batch_run` (one batch, first chunk to commit) -> `executors` / `cluster` (what runs the batches) -> `runner`
+(`run_sweep`).
+"""
 
 from amjax.files import FolderBusyError
+from amjax.sweep.cluster import ClusterExecutor
+from amjax.sweep.executors import CompileQueue, Executor, LocalExecutor
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
 from amjax.sweep.runner import (
-    CompileQueue,
     SweepMismatchError,
     SweepResult,
     SweepTooLargeError,
@@ -13,8 +19,11 @@ from amjax.sweep.runner import (
 )
 
 __all__ = [
+    "ClusterExecutor",
     "CompileQueue",
+    "Executor",
     "FolderBusyError",
+    "LocalExecutor",
     "RunConfig",
     "SweepMismatchError",
     "SweepResult",

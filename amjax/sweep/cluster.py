@@ -1,9 +1,10 @@
 """Sweeps on a cluster through submitit: the same batches as a local sweep, each run as a job on a worker.
 
-The driver (`run_sweep(..., cluster=...)`) plans the batches as a local sweep does and submits each unfinished one
-as a job: a Slurm job on a whole node (`slurm:PARTITION[:JOBS]`), or a local subprocess (`local:N`, for trying it
-on one machine and for the tests). A worker re-plans the sweep from its JSON spec, trains its batch into
-`out/parts/<batch>/` with the local runner's own code (results, re-scoring, checkpoints, policies, all written
+The driver (`run_sweep(spec, out, ClusterExecutor(...))`, or `amjax sweep --cluster ...`) plans the batches as a
+local sweep does and submits each unfinished one as a job: a Slurm job on a whole node (`slurm:PARTITION[:JOBS]`), or
+a local subprocess (`local:N`, for trying it on one machine and for the tests). A worker re-plans the sweep from
+its JSON spec, trains its batch into `out/parts/<batch>/` with the local executor's own code
+(`amjax.sweep.batch_run`: results, re-scoring, checkpoints, policies, all written
 atomically) on as many JAX devices as the driver has, and the driver folds each finished part into `out/` exactly
 as a local sweep writes it. So results are the same row for row (values equal to float rounding) whatever the
 number of workers, and a sweep may resume locally after a cluster run and vice versa (parts ahead of `out` are
@@ -37,6 +38,7 @@ import pandas as pd
 
 from amjax.files import FolderBusyError, atomic_write, commit, folder_lock, remove_partial_writes
 from amjax.sweep import storage
+from amjax.sweep.devices import sweep_devices
 
 CLUSTER_TARGETS = (
     "local:N (N worker processes on this machine) or slurm:PARTITION[:JOBS] (Slurm jobs on "
@@ -202,7 +204,7 @@ def train_part(
     ran."""
     from tqdm.auto import tqdm
 
-    from amjax.sweep import runner
+    from amjax.sweep.batch_run import train_batch
     from amjax.sweep.batches import plan_batches
     from amjax.sweep.devices import sweep_devices
     from amjax.sweep.grid import SweepSpec, expand
@@ -229,7 +231,7 @@ def train_part(
         start = time.monotonic()
         hyper_columns = sorted({k for r in runs for k in r.hyperparams})
         with tqdm(disable=True) as bar:
-            runner._train_batch(
+            train_batch(
                 batch,
                 part,
                 storage.read_table(part / "results"),
@@ -405,3 +407,68 @@ def drive(
             job.cancel(check=False)
         raise
     return results, rescored
+
+
+class ClusterExecutor:
+    """Runs the batches as submitit jobs (`drive`): `target` "local:N" (N worker processes here) or
+    "slurm:PARTITION[:JOBS]" (a whole node per job, at most JOBS at once). The sweep's folder must be on a
+    filesystem the workers share. Each worker splits its batch over as many JAX devices as `devices` holds (the
+    driver's, by default), so its programs are the local run's; results are a local run's, and either may resume
+    the other (docs/cluster.md).
+
+    Args:
+      target: where the jobs run (`CLUSTER_TARGETS`).
+      parameters: submitit executor parameters for the jobs (e.g. `{"account": "lab", "time": 600}` for Slurm;
+        `setup`: shell lines run before each job).
+      devices: the driver's devices (default: every local device); each worker splits its batch over as many.
+      target_chunks: evaluation periods per batch run in about this many chunks (as `LocalExecutor`'s).
+      checkpoint_every_s: the workers' seconds between checkpoints (as `LocalExecutor`'s).
+    """
+
+    def __init__(
+        self,
+        target: str,
+        parameters: Mapping[str, Any] | None = None,
+        *,
+        devices: Sequence[Any] | None = None,
+        target_chunks: int = 10,
+        checkpoint_every_s: float = 60.0,
+    ):
+        self.target = parse_cluster(target)
+        self.parameters = dict(parameters or {})
+        self.devices = tuple(devices or sweep_devices())
+        self.target_chunks = target_chunks
+        self.checkpoint_every_s = checkpoint_every_s
+
+    def check(self) -> None:
+        check_engine()
+        check_parameters(self.target, self.parameters)
+
+    def run(self, work: Any) -> tuple[pd.DataFrame | None, pd.DataFrame | None]:
+        def on_rows(rows: pd.DataFrame, results: pd.DataFrame) -> None:  # a batch folded in
+            work.wall_time.save()
+            for logger in work.loggers:
+                logger.log(rows)
+            if work.on_chunk is not None:
+                work.on_chunk(results)
+
+        options = {
+            "target_chunks": self.target_chunks,
+            "checkpoint_every_s": self.checkpoint_every_s,
+            "save_policies": work.save_policies,
+        }
+        return drive(
+            work.spec,
+            work.out,
+            work.batches,
+            work.results,
+            work.rescored,
+            self.target,
+            work.max_batch,
+            len(self.devices),
+            options,
+            work.bar,
+            parameters=self.parameters,
+            on_rows=on_rows,
+            record=work.record or (lambda name, where: None),
+        )

@@ -89,12 +89,12 @@ def test_next_environment_compiles_while_one_trains(tmp_path, monkeypatch):
     import threading
 
     import amjax.analysis
-    from amjax.sweep import runner
+    from amjax.sweep import executors
 
     for env in ("CartPole-v0", "Acrobot-v1"):
         monkeypatch.setitem(presets.QUICK_BUDGETS, env, (2048, 1024))
     events = []
-    compile_batch, write_report = runner.compile_batch, amjax.analysis.write_report
+    compile_batch, write_report = executors.compile_batch, amjax.analysis.write_report
 
     def logged_compile(batch, *args):
         events.append(("compile", batch.runs[0].env, batch.name, threading.current_thread().name))
@@ -104,7 +104,7 @@ def test_next_environment_compiles_while_one_trains(tmp_path, monkeypatch):
         events.append(("report", folder.name))
         return write_report(folder, **kwargs)
 
-    monkeypatch.setattr(runner, "compile_batch", logged_compile)
+    monkeypatch.setattr(executors, "compile_batch", logged_compile)
     monkeypatch.setattr(amjax.analysis, "write_report", logged_report)
     args = [
         "replicate",

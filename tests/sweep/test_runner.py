@@ -186,7 +186,7 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
     written; a rerun does not compile finished batches."""
     import threading
 
-    from amjax.sweep import runner, storage
+    from amjax.sweep import executors, storage
 
     spec = SweepSpec(
         **{
@@ -197,7 +197,7 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
         }
     )
     events = []
-    compile_batch = runner.compile_batch
+    compile_batch = executors.compile_batch
 
     def logged(batch, *args):
         events.append(("compile", batch.name, threading.current_thread().name))
@@ -209,7 +209,7 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
         events.append(("checkpoint", evals_done, threading.current_thread().name))
         save_checkpoint(path, state, evals_done)
 
-    monkeypatch.setattr(runner, "compile_batch", logged)
+    monkeypatch.setattr(executors, "compile_batch", logged)
     monkeypatch.setattr(storage, "save_checkpoint", logged_save)
     full = run_sweep(
         spec,
@@ -232,7 +232,7 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
             raise RuntimeError("compile failed")
         return compile_batch(batch, *args)
 
-    monkeypatch.setattr(runner, "compile_batch", second_fails)
+    monkeypatch.setattr(executors, "compile_batch", second_fails)
     with pytest.raises(RuntimeError, match="compile failed"):
         run_sweep(spec, tmp_path / "failed", progress=False, target_chunks=4)
     written = pd.read_parquet(tmp_path / "failed" / "results.parquet")
@@ -241,7 +241,7 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
     def no_compile(batch, *args):
         raise AssertionError(f"compiled the finished batch {batch.name}")
 
-    monkeypatch.setattr(runner, "compile_batch", no_compile)
+    monkeypatch.setattr(executors, "compile_batch", no_compile)
     again = run_sweep(spec, tmp_path / "full", progress=False, target_chunks=4)
     pd.testing.assert_frame_equal(again.summary, full.summary)
 
