@@ -145,3 +145,24 @@ def test_cheap_cond_is_a_select_under_gpu_and_a_branch_under_cpu(pred) -> None:
             np.testing.assert_array_equal(fun(pred, x), jnp.where(pred, x + 10.0, x * 2.0))
             jaxpr = _jaxpr(lambda *a: fun(*a), pred, x)
         assert ("cond[" in jaxpr) == (name == "cpu")
+
+
+def test_a_sweep_compiles_for_the_strategy_of_its_caller(tmp_path, monkeypatch) -> None:
+    """`run_sweep` compiles its batches on a background thread; a `strategy.use` block around it reaches them."""
+    from amjax.sweep import SweepSpec, run_sweep
+
+    seen = []
+    is_gpu = strategy.is_gpu
+    monkeypatch.setattr(strategy, "is_gpu", lambda: seen.append(strategy.current()) or is_gpu())
+    spec = SweepSpec(
+        envs=("CartPole-v0",),
+        agents=("dqn",),
+        costs=(0.1,),
+        seeds=(0,),
+        total_timesteps=800,
+        eval_every=400,
+        hyperparams={"buffer_size": 400, "learning_starts": 200, "hidden": (16,)},
+    )
+    with strategy.use("gpu"):
+        result = run_sweep(spec, tmp_path / "sweep", progress=False, save_policies=False)
+    assert set(seen) == {"gpu"} and len(result.table) == 1

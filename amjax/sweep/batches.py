@@ -143,10 +143,13 @@ class BatchPrograms:
 COMPILE_LOCK = threading.Lock()
 
 
-def compile_batch(batch: Batch, target_chunks: int, devices: tuple[jax.Device, ...]) -> BatchPrograms:
+def compile_batch(
+    batch: Batch, target_chunks: int, devices: tuple[jax.Device, ...], strategy_name: str | None = None
+) -> BatchPrograms:
     """Compile a batch's programs ahead of time (nothing is allocated or run: the train states are sized with
     `jax.eval_shape`), so that the sweep runner can compile the next batch on another thread while the current
-    one trains. One compile at a time in the process (`COMPILE_LOCK`)."""
+    one trains (pass `strategy_name`, `amjax.strategy.current()` of the thread that asks, since a `strategy.use`
+    block does not reach other threads). One compile at a time in the process (`COMPILE_LOCK`)."""
     evals_per_chunk = chunk_evals(batch.runs[0].config.num_evals, target_chunks)
     sharding = config_sharding(list(devices))
 
@@ -156,7 +159,7 @@ def compile_batch(batch: Batch, target_chunks: int, devices: tuple[jax.Device, .
         )
 
     with COMPILE_LOCK:
-        init, chunk = compiled_programs(batch.algo, evals_per_chunk, devices)
+        init, chunk = compiled_programs(batch.algo, evals_per_chunk, devices, strategy_name)
         configs, keys = batch.stacked()
         states = placed(jax.eval_shape(init, configs, keys), weak=False)  # fresh or restored: plain arrays
         configs_placed = placed(configs, weak=True)
@@ -165,7 +168,7 @@ def compile_batch(batch: Batch, target_chunks: int, devices: tuple[jax.Device, .
             keys=keys,
             init=init.lower(configs, keys).compile(),
             chunk=chunk.lower(configs_placed, states).compile(),
-            rescore=rescore_program(batch.algo, devices).lower(configs_placed, states).compile(),
+            rescore=rescore_program(batch.algo, devices, strategy_name).lower(configs_placed, states).compile(),
             evals_per_chunk=evals_per_chunk,
         )
 

@@ -25,6 +25,7 @@ import jax
 import pandas as pd
 from tqdm.auto import tqdm
 
+from amjax import strategy
 from amjax.sweep import storage
 from amjax.sweep.batch_run import TRAIN, batch_state, train_batch
 from amjax.sweep.batches import Batch, BatchPrograms, compile_batch, plan_batches
@@ -80,13 +81,13 @@ class CompileQueue:
         self._worker: threading.Thread | None = None
 
     def submit(self, batch: Batch, target_chunks: int, devices: tuple[jax.Device, ...]) -> None:
-        """Queue `batch`'s compile (nothing if it is queued already)."""
-        key = (batch.name, target_chunks, devices)
+        """Queue `batch`'s compile (nothing if it is queued already), for the strategy current in this thread."""
+        key = (batch.name, target_chunks, devices, strategy.current())
         with self._lock:
             if key in self._futures:
                 return
             self._futures[key] = future = Future()
-            self._jobs.append((future, batch, target_chunks, devices))
+            self._jobs.append((future, batch, *key[1:]))
             if self._worker is None:
                 self._worker = threading.Thread(target=self._work, name="amjax-compile-ahead", daemon=True)
                 self._worker.start()
@@ -95,7 +96,7 @@ class CompileQueue:
         """`batch`'s programs once compiled (queued now if they were not); a failed compile raises its error."""
         self.submit(batch, target_chunks, devices)
         with self._lock:
-            future = self._futures.pop((batch.name, target_chunks, devices))
+            future = self._futures.pop((batch.name, target_chunks, devices, strategy.current()))
         return future.result()
 
     def queue_sweep(
