@@ -15,6 +15,7 @@ from typing import Any, NamedTuple
 
 import jax
 import pytest
+from jax._src import lru_cache as _lru_cache
 
 # At least two CPU devices, so that the sweep runner's sharded path (`amjax.sweep.devices`) is what the tests run
 # even on a one-core machine (before any test module imports gymnax, which starts JAX's backend).
@@ -27,6 +28,23 @@ COMPILE_CACHE = os.environ.setdefault(
     "JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir()) / "amjax-tests-compile-cache")
 )
 jax.config.update("jax_compilation_cache_dir", COMPILE_CACHE)
+# Processes a test starts only read it: a child killed mid-write (the crash tests kill theirs) would leave a
+# truncated entry, which aborts the next process that loads it. The test processes write each entry whole
+# (JAX writes it in place; here to a temporary name, then renamed), so a reader never sees half of one.
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "1e9"
+
+
+def _put_whole(self, key: str, value: bytes) -> None:
+    path = os.path.join(str(self.path), f"{key}{_lru_cache._CACHE_SUFFIX}")
+    if os.path.exists(path):
+        return
+    temporary = f"{path}.{os.getpid()}.partial"
+    with open(temporary, "wb") as file:
+        file.write(value)
+    os.rename(temporary, path)
+
+
+_lru_cache.LRUCache.put = _put_whole
 
 
 class Rollout(NamedTuple):
