@@ -284,7 +284,10 @@ def replace(source, target, *args, **kwargs):
 os.replace = replace
 run_sweep(SweepSpec.from_json(json.loads({json.dumps(SPEC.to_json())!r})), out, **{OPTIONS!r})
 """
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}  # and the suite's compilation cache
+    # The suite's compilation cache, read only (no entry written under 1e9 s of compiling): the kill must not cut
+    # one of its entries short (tests/conftest.py).
+    read_only = {"JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "1e9"}
+    env = {**os.environ, **read_only, "PYTHONPATH": str(Path(__file__).parents[2])}
     done = subprocess.run([sys.executable, "-c", child], env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 9, done.stderr[-3000:]
     assert _digest(out, skip="checkpoints") == _digest(points[name], skip="checkpoints"), (
