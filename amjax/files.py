@@ -76,6 +76,32 @@ def atomic_write(path: Path, write: Callable[[str], None]) -> None:
         raise
 
 
+def write_compile_cache_whole() -> None:
+    """Make JAX's persistent compilation cache write each entry whole (`atomic_write`).
+
+    JAX 0.10 writes an entry in place, so a process killed mid-write (a preempted cluster worker: the cluster
+    runner gives its workers one cache) leaves a truncated entry, and a process that reads an entry while another
+    writes it sees half of one; loading either aborts the reader (a C++ abort, not an exception). Applied when
+    `amjax.agents` is imported; idempotent. A cache with a size limit keeps JAX's own locked writes."""
+    try:
+        from jax._src import lru_cache
+    except ImportError:  # a JAX without this private module: left as it is
+        return
+    put = lru_cache.LRUCache.put
+    if getattr(put, "writes_whole", False):
+        return
+
+    def put_whole(self, key: str, value: bytes) -> None:
+        if not key or self.eviction_enabled:
+            return put(self, key, value)
+        path = Path(str(self.path)) / f"{key}{lru_cache._CACHE_SUFFIX}"
+        if not path.exists():
+            atomic_write(path, lambda tmp: Path(tmp).write_bytes(value))
+
+    put_whole.writes_whole = True
+    lru_cache.LRUCache.put = put_whole
+
+
 def remove_partial_writes(folder: Path, recursive: bool = True, skip: Sequence[str] = ()) -> list[Path]:
     """Delete the temporary files that interrupted `atomic_write` calls left in `folder` (and its subfolders
     if `recursive`, bar those named in `skip`, which other processes own); returns them. Only safe while no

@@ -106,7 +106,7 @@ def split(algo, args, configs, all_cases: bool) -> None:
             return jax.random.randint(key, batch.first.shape, 0, setup.num_actions), carry, None
 
         def body(envs, key):
-            envs, _, transitions, _ = rollout(setup.env, setup.env_params, envs, None, act, key, config.train_freq)
+            envs, _, transitions, _, _ = rollout(setup.env, setup.env_params, envs, None, act, key, config.train_freq)
             return envs, transitions.reward.sum()
 
         return jax.lax.scan(body, envs, jax.random.split(fast_key(key), updates))

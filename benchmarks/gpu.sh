@@ -1,15 +1,18 @@
 #!/usr/bin/env bash
 # The GPU figures of docs/guide/gpu.md in one go, written as one markdown file that names the device. Parts (about
-# 7.5 minutes together on one H200; each case of the first two is a fresh process, ~37 s):
-#   ppo, dqn           PPO and Dueling DQN sweeps at 1,024 and 4,096 configurations, amjax against the plain
-#                      single-file reference (python -m benchmarks.throughput, the cases of issue 58's table);
+# 7 minutes together on one H200):
+#   profile            PPO and Dueling DQN sweeps at 1,024 and 4,096 configurations, amjax against the plain
+#                      single-file reference compiled in the same process and timed in alternation, the 4,096 cases
+#                      profiled (benchmarks/gpu_profile.py: device time per kernel and source line; ~4.5 minutes);
 #   lander             the LunarLander-v3 port at 65,536 to 1,048,576 envs (benchmarks/lunar_lander_batch.py);
 #   lander-cpu-layout  the port at 65,536 envs with the CPU layout (--strategy cpu), every backend's before
 #                      amjax.strategy;
-# and, only when GPU_PARTS names them (not timed yet on a GPU):
+# and, only when GPU_PARTS names them:
+#   ppo, dqn           the same sweeps, each implementation in a fresh process (python -m benchmarks.throughput, the
+#                      cases of issue 58's table; ~37 s a case, ~6 minutes both);
 #   demo               `python -m train demo`'s wall time (~1 minute);
 #   replicate          benchmarks/replicate_time.py's projection of `amjax replicate` for LunarLander-v3's PPO and
-#                      Dueling DQN (compiles dominate on a GPU).
+#                      Dueling DQN (compiles dominate on a GPU; it did not finish in 170 s on an H200).
 # Each part has a time limit, so a slow part costs its own rows, not the rest.
 #
 #   bash benchmarks/gpu.sh [OUT_DIR]        # default: benchmarks/results/gpu_<date>
@@ -37,11 +40,11 @@ fi
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 
 if [ -n "${GPU_QUICK:-}" ]; then
-    sizes=4,8; ppo_steps=4:5120,8:5120; dqn_steps=4:2500,8:2500
+    sizes=4,8; ppo_steps=4:5120,8:5120; dqn_steps=4:2500,8:2500; big=4; small=8; long=5120
     lander="--envs 256 512 --steps 5 --burn-in 5"; lander_cpu="--envs 256 --steps 5 --burn-in 5"
     replicate="--env CartPole-v0 --agent ppo --seeds 2 --probe-steps 1024"
 else
-    sizes=1024,4096; ppo_steps=1024:51200,4096:5120; dqn_steps=1024:51200,4096:2500
+    sizes=1024,4096; ppo_steps=1024:51200,4096:5120; dqn_steps=1024:51200,4096:2500; big=1024; small=4096; long=51200
     lander="--envs 65536 262144 1048576 --steps 25 --burn-in 100"; lander_cpu="--envs 65536 --steps 10 --burn-in 10"
     replicate="--env LunarLander-v3 --agent ppo dqn"
 fi
@@ -54,7 +57,7 @@ device=$("$python" -c "import jax; d = jax.devices()[0]; print(f'{d.device_kind}
     command -v nvidia-smi >/dev/null && echo && nvidia-smi -L | sed 's/ (UUID.*//; s/^/    /'
 } >"$out/gpu.md"
 
-parts=${GPU_PARTS:-ppo dqn lander lander-cpu-layout}
+parts=${GPU_PARTS:-profile lander lander-cpu-layout}
 part() {  # part TITLE SECONDS COMMAND...: run COMMAND with a time limit, its output in $out/TITLE.log
     local title=$1 limit=$2
     shift 2
@@ -67,6 +70,15 @@ part() {  # part TITLE SECONDS COMMAND...: run COMMAND with a time limit, its ou
     return 0
 }
 
+profile() {  # the four cases, one process each; the long runs timed only
+    local p=("$python" benchmarks/gpu_profile.py --out "$out")
+    "${p[@]}" --agent ppo --configs "$small" --steps 5120 && "${p[@]}" --agent dqn --configs "$small" --steps 2500 &&
+        "${p[@]}" --agent ppo --configs "$big" --steps "$long" --no-profile &&
+        "${p[@]}" --agent dqn --configs "$big" --steps "$long" --no-profile --rounds 1
+}
+export -f profile
+export out python big small long
+part profile 330 bash -c profile
 throughput=("$python" -m benchmarks.throughput --impls amjax,reference --no-sb3 --overhead "" --sizes "$sizes")
 part ppo 170 "${throughput[@]}" --agents ppo --steps $ppo_steps --markdown "$out/ppo.md" --json "$out/ppo.json"
 part dqn 180 "${throughput[@]}" --agents dqn --steps $dqn_steps --markdown "$out/dqn.md" --json "$out/dqn.json"
@@ -83,6 +95,13 @@ part replicate 240 "$python" benchmarks/replicate_time.py $replicate
 {
     echo
     echo "## Sweeps: amjax against the plain reference"
+    for case in ppo_$small dqn_$small ppo_$big dqn_$big; do
+        [ -s "$out/profile_$case.md" ] || continue  # the profile part not run
+        echo
+        echo "In one process, timed in alternation (benchmarks/gpu_profile.py; profile_$case.md):"
+        echo
+        grep -h '^# \|^## ' "$out/profile_$case.md" | sed 's/^#* //; s/^/    /'
+    done
     for agent in ppo dqn; do
         [ -e "$out/$agent.log" ] || continue  # a part not run
         echo

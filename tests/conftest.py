@@ -15,7 +15,8 @@ from typing import Any, NamedTuple
 
 import jax
 import pytest
-from jax._src import lru_cache as _lru_cache
+
+from amjax.files import write_compile_cache_whole
 
 # At least two CPU devices, so that the sweep runner's sharded path (`amjax.sweep.devices`) is what the tests run
 # even on a one-core machine (before any test module imports gymnax, which starts JAX's backend).
@@ -28,23 +29,10 @@ COMPILE_CACHE = os.environ.setdefault(
     "JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir()) / "amjax-tests-compile-cache")
 )
 jax.config.update("jax_compilation_cache_dir", COMPILE_CACHE)
-# JAX writes an entry in place: a process killed mid-write leaves a truncated entry, which aborts the next process
-# that loads it. The test processes write each entry whole (to a temporary name, then renamed), so a reader never
-# sees half of one, and a child that a test kills only reads the cache (JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS
-# set high in its environment: tests/sweep/test_crash_points.py).
-
-
-def _put_whole(self, key: str, value: bytes) -> None:
-    path = os.path.join(str(self.path), f"{key}{_lru_cache._CACHE_SUFFIX}")
-    if os.path.exists(path):
-        return
-    temporary = f"{path}.{os.getpid()}.partial"
-    with open(temporary, "wb") as file:
-        file.write(value)
-    os.rename(temporary, path)
-
-
-_lru_cache.LRUCache.put = _put_whole
+# JAX writes an entry in place; amjax makes every process that imports its agents write entries whole (temporary
+# name, then renamed: `amjax.files.write_compile_cache_whole`), so no process reads half of one, whether its writer
+# was killed or is still writing. The test processes do it from the start.
+write_compile_cache_whole()
 
 
 class Rollout(NamedTuple):

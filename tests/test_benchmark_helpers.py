@@ -71,3 +71,28 @@ def test_table_without_rows():
     # An overhead-only run (`--impls '' --overhead 256`) has no table rows: the header still prints.
     lines = report.format_text(report.table_rows([{"impl": "overhead"}])).splitlines()
     assert len(lines) == 2 and lines[0].split()[0] == "implementation"
+
+
+def test_gpu_profile_names_the_source_line_behind_each_kernel(tmp_path):
+    """benchmarks/gpu_profile.py: a profiled program's device (here: CPU) time is attributed to the line that built
+    each op, through the optimised HLO's stack-frame tables."""
+    import jax
+    import jax.numpy as jnp
+
+    from benchmarks import gpu_profile
+
+    def program(x):
+        return jnp.tanh(x) @ x  # the line the profile must name
+
+    x = jnp.ones((128, 128))
+    compiled = jax.jit(program).lower(x).compile()
+    compiled(x).block_until_ready()
+    with jax.profiler.trace(str(tmp_path), create_perfetto_trace=True):
+        compiled(x).block_until_ready()
+    sources = gpu_profile.hlo_sources(compiled.as_text())
+    line = program.__code__.co_firstlineno + 1
+    assert f"test_benchmark_helpers.py:{line} " in " ".join(sources.values())
+    summary = gpu_profile.summarise(gpu_profile.device_events(tmp_path), sources, top=5)
+    assert summary["kernels"] >= 2 and summary["busy_ms"] > 0
+    named = [row["name"] for row in summary["top_sources"]]
+    assert any(f"test_benchmark_helpers.py:{line} " in name for name in named), named

@@ -37,7 +37,7 @@ from amjax.agents.q_learning import (
 from amjax.agents.replay import ReplayBuffer, replay_add, replay_init, replay_sample
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
-from amjax.agents.training import Algorithm, FinishedEpisodes, UpdateStats, greedy_policy, make_train
+from amjax.agents.training import Algorithm, UpdateStats, greedy_policy, make_train
 
 
 @struct.dataclass
@@ -87,7 +87,7 @@ def init(config: DQNConfig, setup: Setup, key: jax.Array) -> DQNState:
         return jax.random.randint(key, batch.first.shape, 0, setup.num_actions), carry, None
 
     # The first n-1 transitions of each env, waiting for their n-step windows.
-    envs, _, transitions, _ = rollout(env, env_params, envs, None, random_action, warmup_key, config.n_step - 1)
+    envs, _, transitions, _, _ = rollout(env, env_params, envs, None, random_action, warmup_key, config.n_step - 1)
     pending = transition_arrays(config, transitions)
     return DQNState(
         params=params,
@@ -111,7 +111,7 @@ def update(config: DQNConfig, setup: Setup, state: DQNState) -> tuple[DQNState, 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
         return epsilon_greedy(network.apply(state.params, batch.obs), key, eps), carry, None
 
-    envs, _, transitions, _ = rollout(
+    envs, _, transitions, _, episodes = rollout(
         setup.env, setup.env_params, state.envs, None, act, rollout_key, config.train_freq
     )
     window = jax.tree.map(lambda p, x: jnp.concatenate([p, x]), state.pending, transition_arrays(config, transitions))
@@ -155,7 +155,7 @@ def update(config: DQNConfig, setup: Setup, state: DQNState) -> tuple[DQNState, 
     target_params = update_target(config, sync, params, state.target_params)
 
     new_state = DQNState(params, target_params, opt_state, buffer, envs, pending, key_bits(key), env_steps)
-    return new_state, UpdateStats(loss, FinishedEpisodes.of(transitions))
+    return new_state, UpdateStats(loss, episodes)
 
 
 def greedy(config: DQNConfig, setup: Setup, params: Any, num_envs: int):

@@ -56,7 +56,7 @@ from amjax.agents.q_learning import (
 from amjax.agents.replay import ReplayBuffer, sequence_add, sequence_init, sequence_sample, sequence_windows
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
-from amjax.agents.training import Algorithm, FinishedEpisodes, UpdateStats, make_train
+from amjax.agents.training import Algorithm, UpdateStats, make_train
 from amjax.batching import uniform_cond
 from amjax.validation import check_choice, check_positive_int
 
@@ -158,7 +158,7 @@ def init(config: DRQNConfig, setup: Setup, key: jax.Array) -> DRQNState:
     # actions, with the initial network's hidden states (not counted as training steps).
     act = _policy(setup, params, jnp.float32(1.0))
     warmup = config.sequence_length - config.train_freq
-    envs, carry, transitions, (carries, first) = rollout(env, env_params, envs, carry, act, warmup_key, warmup)
+    envs, carry, transitions, (carries, first), _ = rollout(env, env_params, envs, carry, act, warmup_key, warmup)
     obs = envs.obs[0]
     one_step = {
         "obs": obs,
@@ -302,7 +302,7 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
 
     # 1. Act epsilon-greedily for train_freq steps; store one sequence per env.
     act = _policy(setup, state.params, epsilon(config, state.env_steps))
-    envs, carry, transitions, (carries, first) = rollout(
+    envs, carry, transitions, (carries, first), episodes = rollout(
         setup.env, setup.env_params, state.envs, state.carry, act, rollout_key, config.train_freq
     )
     window, pending = sequence_windows(
@@ -351,7 +351,7 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
     )
 
     new_state = DRQNState(params, target_params, opt_state, buffer, envs, carry, pending, key_bits(key), env_steps)
-    return new_state, UpdateStats(mean_loss, FinishedEpisodes.of(transitions))
+    return new_state, UpdateStats(mean_loss, episodes)
 
 
 def greedy(config: DRQNConfig, setup: Setup, params: Any, num_envs: int):

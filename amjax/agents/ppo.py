@@ -31,7 +31,7 @@ from amjax.agents.ppo_core import (
 )
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
-from amjax.agents.training import Algorithm, FinishedEpisodes, UpdateStats, greedy_policy, make_train
+from amjax.agents.training import Algorithm, UpdateStats, greedy_policy, make_train
 from amjax.batching import in_groups
 
 
@@ -95,7 +95,7 @@ def update(config: PPOConfig, setup: Setup, state: PPOState) -> tuple[PPOState, 
         policy, _ = network.apply(state.params, batch.obs)
         return distribution.sample(key, policy), carry, policy
 
-    envs, _, transitions, policies = rollout(
+    envs, _, transitions, policies, episodes = rollout(
         setup.env, setup.env_params, state.envs, None, act, rollout_key, config.num_steps
     )
     log_probs = distribution.log_prob(policies, transitions.action)
@@ -142,7 +142,7 @@ def update(config: PPOConfig, setup: Setup, state: PPOState) -> tuple[PPOState, 
         config, state.params, state.opt_state, batch, key_bits(epoch_key)
     )
     new_state = PPOState(params, opt_state, envs, key_bits(key), state.updates + 1)
-    return new_state, UpdateStats(loss, FinishedEpisodes.of(transitions))
+    return new_state, UpdateStats(loss, episodes)
 
 
 def greedy(config: PPOConfig, setup: Setup, params: Any, num_envs: int):

@@ -31,9 +31,9 @@ from amjax.agents.ppo_core import (
     rollout_advantages,
     shuffle,
 )
-from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
+from amjax.agents.rollout import EnvBatch, FinishedEpisodes, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
-from amjax.agents.training import Algorithm, FinishedEpisodes, UpdateStats, make_train
+from amjax.agents.training import Algorithm, UpdateStats, make_train
 from amjax.validation import check_choice, check_positive_int
 
 
@@ -94,9 +94,9 @@ def init(config: PPORNNConfig, setup: Setup, key: jax.Array) -> PPORNNState:
 
 def collect(
     config: PPORNNConfig, setup: Setup, params: Any, envs: EnvBatch, carry: Any, key: jax.Array
-) -> tuple[EnvBatch, Any, Any, tuple[jax.Array, ...]]:
+) -> tuple[EnvBatch, Any, Any, tuple[jax.Array, ...], FinishedEpisodes]:
     """Roll out `num_steps` steps with the stochastic policy. Returns the final envs and carry, the transitions
-    [T, E] and per step (log-probability, value, `first` flag, carry after the step)."""
+    [T, E], per step (log-probability, value, `first` flag, carry after the step) and the finished episodes."""
 
     distribution = setup.network.distribution
 
@@ -122,7 +122,7 @@ def update(config: PPORNNConfig, setup: Setup, state: PPORNNState) -> tuple[PPOR
     rollout_key, epoch_key, key = jax.random.split(fast_key(state.key), 3)
 
     # 1. Collect a rollout with the current stochastic policy, keeping each step's carry and `first` flag.
-    envs, carry, transitions, (log_probs, values, first, carries) = collect(
+    envs, carry, transitions, (log_probs, values, first, carries), episodes = collect(
         config, setup, state.params, state.envs, state.carry, rollout_key
     )
 
@@ -149,7 +149,7 @@ def update(config: PPORNNConfig, setup: Setup, state: PPORNNState) -> tuple[PPOR
         epoch, (state.params, state.opt_state), jax.random.split(epoch_key, config.update_epochs)
     )
     new_state = PPORNNState(params, opt_state, envs, carry, key_bits(key), state.updates + 1)
-    return new_state, UpdateStats(losses.mean(), FinishedEpisodes.of(transitions))
+    return new_state, UpdateStats(losses.mean(), episodes)
 
 
 def greedy(config: PPORNNConfig, setup: Setup, params: Any, num_envs: int):

@@ -42,6 +42,40 @@ class EnvBatch:
 
 
 @struct.dataclass
+class FinishedEpisodes:
+    """How many episodes finished and the sums of their metrics (`means()` divides). The trainers keep them per env
+    (arrays [num_envs]) while they step, adding elementwise (`add`), and sum them once per evaluation period
+    (`total`): no reduction and no per-step history inside the loops."""
+
+    count: jax.Array
+    sums: EpisodeMetrics
+
+    @classmethod
+    def zeros(cls, shape: tuple[int, ...] = ()) -> FinishedEpisodes:
+        zero = jnp.zeros(shape, jnp.float32)
+        return cls(zero, EpisodeMetrics(zero, zero, zero, zero))
+
+    @classmethod
+    def of(cls, transitions: Transition) -> FinishedEpisodes:
+        """The finished episodes in a batch of transitions that keep their `episode` metrics (any leading axes)."""
+        return cls.zeros().add(transitions.episode_done, transitions.episode).total()
+
+    def add(self, done: jax.Array, episode: EpisodeMetrics) -> FinishedEpisodes:
+        """These plus the episodes that end where `done`, with metrics `episode` (elementwise, broadcasting)."""
+        done = done.astype(jnp.float32)
+        return FinishedEpisodes(self.count + done, jax.tree.map(lambda s, x: s + done * x, self.sums, episode))
+
+    def total(self) -> FinishedEpisodes:
+        """Summed over every axis (per configuration under `vmap`)."""
+        return jax.tree.map(lambda x: x.sum(), self)
+
+    def means(self) -> EpisodeMetrics:
+        """Metrics per finished episode (NaN if none finished)."""
+        count = jnp.where(self.count > 0, self.count, jnp.nan)
+        return jax.tree.map(lambda x: x / count, self.sums)
+
+
+@struct.dataclass
 class Transition:
     """One step of every parallel env. `next_obs` is the observation before any auto-reset, so value targets
     bootstrap correctly on truncation; `done` = terminated or truncated cuts multi-step returns. `reward` is what
@@ -56,8 +90,8 @@ class Transition:
     terminated: jax.Array
     done: jax.Array
     measured: jax.Array
-    episode: EpisodeMetrics  # totals of the episode that ended here (valid where episode_done)
-    episode_done: jax.Array
+    episode: EpisodeMetrics | None  # totals of the episode that ended here (valid where episode_done)
+    episode_done: jax.Array | None  # (a `rollout`'s stacked transitions leave both out: it sums them instead)
 
 
 def reset_envs(env: Any, env_params: Any, key: jax.Array, num_envs: int) -> EnvBatch:
@@ -101,21 +135,25 @@ def rollout(
     act: ActFn,
     key: jax.Array,
     num_steps: int,
-) -> tuple[EnvBatch, Any, Transition, Any]:
+) -> tuple[EnvBatch, Any, Transition, Any, FinishedEpisodes]:
     """Step every env `num_steps` times with `act`.
 
-    Returns the final batch and agent carry, the stacked transitions [num_steps, num_envs, ...] and the stacked
-    extras (for example the log-probabilities and values PPO keeps).
+    Returns the final batch and agent carry, the stacked transitions [num_steps, num_envs, ...] (without their
+    `episode` metrics), the stacked extras (for example the policy outputs PPO keeps) and the episodes that
+    finished, per env ([num_envs]). The episode sums ride in the loop's carry: stacking their per-step totals cost
+    one more write per metric and step (a kernel each on a GPU).
     """
 
-    def one_step(carry: tuple[EnvBatch, Any], step_key: jax.Array):
-        batch, agent_carry = carry
+    def one_step(carry: tuple[EnvBatch, Any, FinishedEpisodes], step_key: jax.Array):
+        batch, agent_carry, episodes = carry
         act_key, env_key = jax.random.split(step_key)
         action, agent_carry, extras = act(batch, agent_carry, act_key)
         batch, transition = step_envs(env, env_params, batch, action, env_key)
-        return (batch, agent_carry), (transition, extras)
+        episodes = episodes.add(transition.episode_done, transition.episode)
+        return (batch, agent_carry, episodes), (transition.replace(episode=None, episode_done=None), extras)
 
-    (batch, agent_carry), (transitions, extras) = jax.lax.scan(
-        one_step, (batch, agent_carry), jax.random.split(key, num_steps)
+    initial = (batch, agent_carry, FinishedEpisodes.zeros(batch.first.shape))
+    (batch, agent_carry, episodes), (transitions, extras) = jax.lax.scan(
+        one_step, initial, jax.random.split(key, num_steps)
     )
-    return batch, agent_carry, transitions, extras
+    return batch, agent_carry, transitions, extras, episodes

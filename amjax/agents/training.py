@@ -23,7 +23,7 @@ from flax import struct
 
 from amjax import strategy
 from amjax.agents.config import AgentConfig
-from amjax.agents.rollout import ActFn, EnvBatch, Transition, fast_key, reset_envs, step_envs
+from amjax.agents.rollout import ActFn, EnvBatch, FinishedEpisodes, fast_key, reset_envs, step_envs
 from amjax.agents.setup import Setup, training_env
 from amjax.batching import in_groups
 from amjax.wrappers.episode_stats import EpisodeMetrics
@@ -32,32 +32,9 @@ Policy = tuple[ActFn, Any]  # (act function, its initial agent carry for a batch
 
 
 @struct.dataclass
-class FinishedEpisodes:
-    """How many episodes finished and the sums of their metrics (`means()` divides)."""
-
-    count: jax.Array
-    sums: EpisodeMetrics
-
-    @classmethod
-    def of(cls, transitions: Transition) -> FinishedEpisodes:
-        """The finished episodes in a batch of transitions (any leading axes)."""
-        done = transitions.episode_done.astype(jnp.float32)
-        return cls(done.sum(), jax.tree.map(lambda x: (done * x).sum(), transitions.episode))
-
-    @classmethod
-    def zeros(cls) -> FinishedEpisodes:
-        zero = jnp.float32(0.0)
-        return cls(zero, EpisodeMetrics(zero, zero, zero, zero))
-
-    def means(self) -> EpisodeMetrics:
-        """Metrics per finished episode (NaN if none finished)."""
-        count = jnp.where(self.count > 0, self.count, jnp.nan)
-        return jax.tree.map(lambda x: x / count, self.sums)
-
-
-@struct.dataclass
 class UpdateStats:
-    """What one `update` reports: its loss and the training episodes that finished during it."""
+    """What one `update` reports: its loss and the training episodes that finished during it, per env ([num_envs]:
+    `rollout`'s sums; the driver adds them up over an evaluation period and sums over envs once)."""
 
     loss: jax.Array
     episodes: FinishedEpisodes
@@ -144,23 +121,25 @@ def evaluate(
         return (t < max_steps) & ~jnp.all(finished)
 
     def one_step(loop):
-        t, batch, agent_carry, finished, episodes = loop
+        t, batch, agent_carry, finished, totals = loop
         act_key, env_key = jax.random.split(step_keys[t])
         action, agent_carry, _ = act(batch, agent_carry, act_key)
         batch, transition = step_envs(env, env_params, batch, action, env_key)
-        first_end = transition.episode_done & ~finished
-        ended = FinishedEpisodes.of(transition.replace(episode_done=first_end))
-        return t + 1, batch, agent_carry, finished | transition.episode_done, jax.tree.map(jnp.add, episodes, ended)
+        first_end = transition.episode_done & ~finished  # each episode's metrics kept at its first end
+        totals = jax.tree.map(partial(jnp.where, first_end), transition.episode, totals)
+        return t + 1, batch, agent_carry, finished | transition.episode_done, totals
 
     # Every episode ends within `max_steps` (the time limit truncates it); stepping stops once all have ended
     # (later steps would add nothing). On a GPU the loop runs `max_steps` steps instead: a loop that may stop early
-    # reads its predicate back to the host every step, which costs more than the steps it saves.
-    initial = (jnp.int32(0), batch, carry, finished, FinishedEpisodes.zeros())
+    # reads its predicate back to the host every step, which costs more than the steps it saves. The episodes'
+    # metrics are kept per episode and summed after the loop (no reduction per step).
+    zeros = jax.tree.map(lambda x: jnp.zeros(num_episodes, x.dtype), EpisodeMetrics.zeros())
+    initial = (jnp.int32(0), batch, carry, finished, zeros)
     if strategy.is_gpu():
-        *_, episodes = jax.lax.fori_loop(0, max_steps, lambda _, loop: one_step(loop), initial)
+        *_, finished, totals = jax.lax.fori_loop(0, max_steps, lambda _, loop: one_step(loop), initial)
     else:
-        *_, episodes = jax.lax.while_loop(running, one_step, initial)
-    return episodes
+        *_, finished, totals = jax.lax.while_loop(running, one_step, initial)
+    return FinishedEpisodes.zeros().add(finished, totals).total()
 
 
 def evaluate_greedy(
@@ -205,10 +184,19 @@ def init_run(algo: Algorithm, config: AgentConfig, key: jax.Array) -> RunState:
     )
 
 
-def _train_period(algo: Algorithm, config: AgentConfig, algo_state: Any) -> tuple[Any, Any]:
-    """One evaluation period's updates (a pure function of its operands, as `in_groups` needs)."""
+def _train_period(algo: Algorithm, config: AgentConfig, algo_state: Any) -> tuple[Any, UpdateStats]:
+    """One evaluation period's updates (a pure function of its operands, as `in_groups` needs): the new state, the
+    losses [updates_per_eval] and the finished training episodes, summed over the period per env."""
     setup = algo.setup(config)
-    return jax.lax.scan(lambda s, _: algo.update(config, setup, s), algo_state, None, config.updates_per_eval)
+
+    def one_update(carry: tuple[Any, FinishedEpisodes], _):
+        state, episodes = carry
+        state, stats = algo.update(config, setup, state)
+        return (state, jax.tree.map(jnp.add, episodes, stats.episodes)), stats.loss
+
+    initial = (algo_state, FinishedEpisodes.zeros((config.num_envs,)))
+    (algo_state, episodes), losses = jax.lax.scan(one_update, initial, None, config.updates_per_eval)
+    return algo_state, UpdateStats(losses, episodes)
 
 
 def run_evals(algo: Algorithm, config: AgentConfig, state: RunState, num_evals: int) -> tuple[RunState, EvalRow]:
@@ -220,7 +208,7 @@ def run_evals(algo: Algorithm, config: AgentConfig, state: RunState, num_evals: 
 
     def one_period(state: RunState, _):
         algo_state, stats = train_period(config, state.algo)
-        train = jax.tree.map(lambda x: x.sum(0), stats.episodes).means()
+        train = stats.episodes.total().means()
         loss = stats.loss.mean()
         params = algo.params(algo_state)
         eval_key = jax.random.fold_in(state.key, state.evals_done)

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
@@ -172,20 +173,27 @@ def train_batch(
     # Checkpoints are written on a thread of their own while the next chunk trains (a LunarLander-v3 Dueling DQN
     # batch's is 340 MB, about 1.3 s); a chunk's rows are always on disk before its checkpoint is started, and the
     # batch is committed only once its last checkpoint is written.
+    # The next chunk is queued before this one's rows are fetched and written, so an accelerator never waits for
+    # the host between chunks; only a chunk that checkpoints (or saves policies) holds the next one back until its
+    # states are copied (they are donated to the next chunk).
     with ThreadPoolExecutor(1, thread_name_prefix="amjax-checkpoint") as writer:
         pending: Future | None = None
-        while evals_done < num_evals:
+        queued = programs.chunk(configs, states) if evals_done < num_evals else None
+        while queued is not None:
             start = time.monotonic()
-            states, rows = programs.chunk(configs, states)
-            rows = jax.device_get(rows)
+            states, rows = queued
             evals_done += evals_per_chunk
+            checkpoint = evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s
+            best_return = jnp.copy(states.best_return)  # read below, after `states` may have been donated
+            queued = None if checkpoint else programs.chunk(configs, states)
+            rows = jax.device_get(rows)
             new_rows = _rows(batch, rows, hyper_columns)
             results = storage.merge_rows(results, new_rows)
             storage.write_table(out / "results", results)
             wall_time.save()
             for logger in loggers:
                 logger.log(new_rows)
-            if evals_done == num_evals or time.monotonic() - last_checkpoint >= checkpoint_every_s:
+            if checkpoint:
                 if save_policies and evals_done < num_evals:  # a finished batch saves them once, re-scored, below
                     _save_policies(out, batch, states, evals_done, results, None)
                 # A copy: `states` is donated to the next chunk while the copy is written.
@@ -194,8 +202,9 @@ def train_batch(
                     pending.result()  # one write at a time, in order; a failed write raises here
                 pending = writer.submit(storage.save_checkpoint, ckpt_path, snapshot, evals_done)
                 last_checkpoint = time.monotonic()
+                queued = programs.chunk(configs, states) if evals_done < num_evals else None
             steps = len(batch.runs) * evals_per_chunk * config0.eval_every
-            best = np.nanmedian(np.asarray(states.best_return)[: len(batch.runs)])
+            best = np.nanmedian(np.asarray(best_return)[: len(batch.runs)])
             bar.set_postfix({"steps/s": f"{steps / (time.monotonic() - start):.3g}", "median best": f"{best:.1f}"})
             bar.set_description(label)
             bar.update(steps)

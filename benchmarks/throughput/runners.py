@@ -68,25 +68,30 @@ def _compile_amjax(case: dict[str, Any]) -> SweepPrograms:
     )
 
 
-def build_amjax(case: dict[str, Any]) -> dict[str, Any]:
-    """Compile what the sweep runner compiles for the case; returns the compile time and a `run` that trains."""
+def sweep_run(p: SweepPrograms) -> Callable[[], float]:
+    """One run as the sweep runner trains a fresh batch: init, then the chunks, each queued before the previous
+    one's rows are fetched (here only the costed test return); returns the median last test return."""
     import jax
     import numpy as np
 
-    p = _compile_amjax(case)
-
     def run():
-        # As the runner does with a fresh batch: the states stay on the device, split over the devices.
-        states = jax.device_put(p.init(p.stacked, p.keys), p.sharding)
-        last = None
-        for _ in range(p.chunks):
-            states, rows = p.chunk(p.sharded_configs, states)  # states are donated, as in the runner
-            # As the runner does, the rows come back after each chunk (here only the costed test return).
+        states = jax.device_put(p.init(p.stacked, p.keys), p.sharding)  # the states stay on the device
+        queued = p.chunk(p.sharded_configs, states)  # states are donated, as in the runner
+        for index in range(p.chunks):
+            states, rows = queued
+            if index + 1 < p.chunks:
+                queued = p.chunk(p.sharded_configs, states)
             last = jax.device_get(rows.test.costed_return)[:, -1]
         jax.block_until_ready(states)
         return float(np.median(last))
 
-    return {"devices": p.devices, "compile_s": p.compile_s, "run": run, "chunks": p.chunks}
+    return run
+
+
+def build_amjax(case: dict[str, Any]) -> dict[str, Any]:
+    """Compile what the sweep runner compiles for the case; returns the compile time and a `run` that trains."""
+    p = _compile_amjax(case)
+    return {"devices": p.devices, "compile_s": p.compile_s, "run": sweep_run(p), "chunks": p.chunks}
 
 
 def run_amjax(case: dict[str, Any]) -> dict[str, Any]:
@@ -115,8 +120,8 @@ def build_env_only(case: dict[str, Any]) -> Callable[[], Any]:
     @jax.jit
     def random_rollout(key):
         batch = reset_envs(env, params, key, ENV_ONLY_ENVS)
-        _, _, t, _ = rollout(env, params, batch, None, random_action, key, ENV_ONLY_STEPS)
-        return t.reward.sum() + t.next_obs.sum() + t.obs.sum() + t.episode.length.sum()
+        _, _, t, _, episodes = rollout(env, params, batch, None, random_action, key, ENV_ONLY_STEPS)
+        return t.reward.sum() + t.next_obs.sum() + t.obs.sum() + episodes.sums.length.sum()
 
     key = jax.random.key(0, impl=PRNG_IMPL)
     compiled = random_rollout.lower(key).compile()

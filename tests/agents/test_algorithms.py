@@ -394,9 +394,9 @@ def _truncated_unmeasured_rollout(config, steps=5):
     def never_measure(batch, carry, key):
         return jnp.zeros(batch.obs.shape[0], jnp.int32), carry, None
 
-    _, _, transitions, _ = rollout(env, params, batch, None, never_measure, jax.random.key(1), steps)
+    _, _, transitions, _, episodes = rollout(env, params, batch, None, never_measure, jax.random.key(1), steps)
     assert not transitions.terminated.any() and transitions.done[:, 0].tolist() == [False] * (steps - 1) + [True]
-    assert float(transitions.episode.raw_return[-1, 0]) == steps  # the score still counts every step's reward
+    assert float(episodes.count[0]) == 1 and float(episodes.sums.raw_return[0]) == steps  # the score counts every step
     return transitions
 
 
@@ -439,5 +439,5 @@ def test_a_measured_end_pays_the_learner_as_before():
     def measure_last(batch, carry, key):  # measures on the third step only (flag 0 until then)
         return jnp.where(carry == 2, 2, 0)[None].astype(jnp.int32), carry + 1, None
 
-    _, _, transitions, _ = rollout(env, params, batch, jnp.int32(0), measure_last, jax.random.key(1), 3)
+    _, _, transitions, _, _ = rollout(env, params, batch, jnp.int32(0), measure_last, jax.random.key(1), 3)
     np.testing.assert_allclose(transitions.reward[:, 0], [0.0, 0.0, 3.0])

@@ -398,7 +398,7 @@ def test_ppo_rnn_update_recomputes_the_rollouts_outputs():
     config = PROBE_CONFIGS["ppo-rnn"].replace(num_steps=12)
     state = ppo_rnn.init(config, _setup(config), jax.random.PRNGKey(0))
     start = jax.tree.map(lambda c: c + 0.3, state.carry)  # a mid-episode state
-    _, _, transitions, (log_probs, values, first, _) = ppo_rnn.collect(
+    _, _, transitions, (log_probs, values, first, _), _ = ppo_rnn.collect(
         config, _setup(config), state.params, state.envs, start, jax.random.PRNGKey(1)
     )
     envs = jnp.asarray([5, 2, 7])
