@@ -100,8 +100,8 @@ def uniform_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *oper
     none does, and both (then selects per member) only when members disagree; the reduced predicates are themselves
     ``uniform_cond`` predicates, so nested ``vmap`` levels (configurations x envs) stay branches too. Used for
     predicates that are usually equal across a batch (DQN's "learning has started", an auto-reset that only some
-    envs need). Under the ``"gpu"`` strategy a batch takes one conditional, on whether any member takes
-    ``true_fun``.
+    envs need). Under the ``"gpu"`` strategy a batch takes one three-way conditional (all, some or none of its
+    members take ``true_fun``) instead of nested ones.
     """
 
     true_fun, false_fun = _traced(true_fun, *operands), _traced(false_fun, *operands)
@@ -112,9 +112,13 @@ def uniform_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *oper
 
     def batched(pred, *operands):
         if strategy.is_gpu():
-            # One conditional (a GPU reads each predicate back to the host before branching): both branches
-            # and a select where any member takes `true_fun`, else `false_fun` alone.
-            return jax.lax.cond(jnp.any(pred), mixed, lambda _, *operands: false_all(*operands), pred, *operands)
+            # One conditional (a GPU reads its index back to the host before branching): `true_fun` alone when
+            # every member takes it, both and a select when members disagree, `false_fun` alone when none does.
+            # (A select where all agree would copy every output: the parameters and optimiser state of a learning
+            # step, a recurrent agent's whole replay buffer.)
+            index = jnp.where(jnp.all(pred), 0, jnp.where(jnp.any(pred), 1, 2))
+            branches = (lambda _, *operands: true_all(*operands), mixed, lambda _, *operands: false_all(*operands))
+            return jax.lax.switch(index, branches, pred, *operands)
         return uniform_cond(
             jnp.all(pred),
             lambda _, *operands: true_all(*operands),

@@ -68,8 +68,13 @@ def test_uniform_cond_under_gpu_is_one_conditional_with_the_same_values(pred) ->
         ref, ref_jaxpr = fun(pred, x), _jaxpr(lambda *a: fun(*a), pred, x)
     np.testing.assert_array_equal(out, jnp.where(pred, x + 10.0, x * 2.0))
     np.testing.assert_array_equal(out, ref)
-    # Under cpu the outer conditional (all members?) nests another uniform_cond (any member?); under gpu one.
+    # Under cpu the outer conditional (all members?) nests another uniform_cond (any member?); under gpu one
+    # conditional of three branches (all / some / none), and only the "some" branch selects.
     assert jaxpr.count("cond[") == 1 and "custom_vmap" not in jaxpr and "custom_vmap" in ref_jaxpr
+    with strategy.use("gpu"):
+        (eqn,) = [e for e in jax.make_jaxpr(fun)(pred, x).eqns if e.primitive.name == "cond"]
+    selects = ["select_n" in str(branch) for branch in eqn.params["branches"]]
+    assert selects == [False, True, False]
 
 
 def _configs(agent: str) -> list:

@@ -25,27 +25,7 @@ from amjax.sweep.grid import MEASURE_FIELDS
 
 SETTING = ["env", "agent", "vanilla", "cost"]
 # Columns the runner writes itself; any other column of results.parquet is a swept hyperparameter.
-_RESULT_COLUMNS = {
-    "config_id",
-    "env",
-    "agent",
-    "vanilla",
-    "cost",
-    "seed",
-    "env_steps",
-    "eval_return",
-    "eval_raw_return",
-    "eval_length",
-    "eval_measurements",
-    "train_return",
-    "train_raw_return",
-    "train_length",
-    "train_measurements",
-    "loss",
-    "diverged",
-    "eval_measured_fraction",
-    "measured_fraction",
-}
+_RESULT_COLUMNS = {*storage.ID_COLUMNS, "env_steps", "diverged", "measured_fraction", *storage.METRIC_COLUMNS}
 
 
 class NotASweepError(ValueError):

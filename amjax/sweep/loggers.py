@@ -15,19 +15,10 @@ from typing import Any, Protocol
 
 import pandas as pd
 
+from amjax.sweep.storage import METRIC_COLUMNS
+
 # Results columns logged as scalars (tag = column name with its first "_" turned into "/": eval/return, ...).
-METRICS = (
-    "eval_return",
-    "eval_raw_return",
-    "eval_measured_fraction",
-    "eval_length",
-    "eval_measurements",
-    "train_return",
-    "train_raw_return",
-    "train_length",
-    "train_measurements",
-    "loss",
-)
+METRICS = METRIC_COLUMNS
 _NOT_CONFIG = {*METRICS, "env_steps", "diverged", "config_id"}
 
 

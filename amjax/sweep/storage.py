@@ -275,6 +275,20 @@ def environment_info() -> dict[str, Any]:
 # -- summaries -----------------------------------------------------------------------------------------------
 
 ID_COLUMNS = ["config_id", "env", "agent", "vanilla", "cost", "seed"]
+# The metrics a results table holds per evaluation (`EvalRow.columns`, and the measured fraction the runner derives
+# from them); with ID_COLUMNS, "env_steps", "diverged" and the swept hyperparameters they are the whole table.
+METRIC_COLUMNS = (
+    "eval_return",
+    "eval_raw_return",
+    "eval_measured_fraction",
+    "eval_length",
+    "eval_measurements",
+    "train_return",
+    "train_raw_return",
+    "train_length",
+    "train_measurements",
+    "loss",
+)
 
 
 RESCORED_COLUMNS = [
