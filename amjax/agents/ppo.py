@@ -19,13 +19,13 @@ from amjax import strategy
 from amjax.agents.config import static
 from amjax.agents.networks import ActorCritic
 from amjax.agents.optim import minibatch_step
-from amjax.agents.policies import for_action_space
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
     clipped_loss,
     eval_action,
     gae,
     make_optimizer,
+    policy_distribution,
     rollout_advantages,
     shuffle,
 )
@@ -59,11 +59,12 @@ class PPOState:
 
 
 def network(config: PPOConfig, action_space: Any) -> ActorCritic:
-    distribution = for_action_space(
-        action_space, measure=not config.vanilla, readings=config.num_instruments, factored=config.factored_masks > 0
-    )
     return ActorCritic(
-        distribution, tuple(config.hidden), config.activation, config.shared_network, config.measure_prior
+        policy_distribution(config, action_space),
+        tuple(config.hidden),
+        config.activation,
+        config.shared_network,
+        config.measure_prior,
     )
 
 

@@ -20,7 +20,7 @@ from flax import struct
 
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.optim import clipped_adam
-from amjax.agents.policies import Distribution
+from amjax.agents.policies import Distribution, for_action_space
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real
 
 EVAL_POLICIES = ("greedy", "stochastic", "greedy_control")
@@ -90,6 +90,13 @@ def eval_action(config: PPOBaseConfig, distribution: Distribution, outputs: Any,
     if config.eval_policy == "greedy_control":
         return distribution.mode_sampling_measure(key, outputs)
     return distribution.mode(outputs)
+
+
+def policy_distribution(config: PPOBaseConfig, action_space: Any) -> Distribution:
+    """The policy's distribution over `action_space` for `config`'s measurement setting (policies.py)."""
+    return for_action_space(
+        action_space, measure=not config.vanilla, readings=config.num_instruments, factored=config.factored_masks > 0
+    )
 
 
 def make_optimizer(config: PPOBaseConfig) -> optax.GradientTransformation:

@@ -22,12 +22,12 @@ from flax import struct
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import CELLS, RecurrentActorCritic, zero_carry
 from amjax.agents.optim import minibatch_step
-from amjax.agents.policies import for_action_space
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
     clipped_loss,
     eval_action,
     make_optimizer,
+    policy_distribution,
     rollout_advantages,
     shuffle,
 )
@@ -76,11 +76,13 @@ class PPORNNState:
 
 
 def network(config: PPORNNConfig, action_space: Any) -> RecurrentActorCritic:
-    distribution = for_action_space(
-        action_space, measure=not config.vanilla, readings=config.num_instruments, factored=config.factored_masks > 0
-    )
     return RecurrentActorCritic(
-        distribution, tuple(config.hidden), config.rnn_size, config.cell, config.activation, config.measure_prior
+        policy_distribution(config, action_space),
+        tuple(config.hidden),
+        config.rnn_size,
+        config.cell,
+        config.activation,
+        config.measure_prior,
     )
 
 
