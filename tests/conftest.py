@@ -125,3 +125,20 @@ def stop_sweep_after():
 
     make.error = SweepStopped
     return make
+
+
+def _tiny_sweep_flags(*, steps: int = 2048, seeds: int = 1, extra: tuple[str, ...] = ()) -> list[str]:
+    """`amjax sweep` flags (no --out) of a one-cost PPO sweep of CartPole-v0 that trains in seconds: 4 envs x 32
+    steps per update, an evaluation of 2 episodes every 1,024 steps."""
+    return [
+        *("--env", "CartPole-v0", "--agent", "ppo", "--cost", "0.1", "--seeds", str(seeds), "--steps", str(steps)),
+        *("--eval-every", "1024", "--eval-episodes", "2", "--set", "num_envs=4", "--set", "num_steps=32"),
+        "--no-progress",
+        *extra,
+    ]
+
+
+@pytest.fixture(scope="session")
+def tiny_sweep_flags():
+    """`tiny_sweep_flags(steps=2048, seeds=1, extra=())`: the flags of a small command-line sweep (no --out)."""
+    return _tiny_sweep_flags

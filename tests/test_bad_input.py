@@ -17,27 +17,7 @@ from amjax.sweep import SweepMismatchError, SweepSpec, SweepTooLargeError, expan
 from amjax.sweep.storage import UnreadableFileError
 from train.cli import main
 
-TINY_FLAGS = [
-    "--agent",
-    "ppo",
-    "--cost",
-    "0.1",
-    "--seeds",
-    "1",
-    "--steps",
-    "2048",
-    "--eval-every",
-    "1024",
-    "--eval-episodes",
-    "2",
-    "--set",
-    "num_envs=4",
-    "--set",
-    "num_steps=32",
-    "--set",
-    "rescore_episodes=2",
-    "--no-progress",
-]
+RESCORE_2 = ("--set", "rescore_episodes=2")  # with tiny_sweep_flags (conftest): a small command-line sweep
 
 # (flags after `sweep --agent ppo`, a piece of the message): values a user can mistype.
 SWEEP_CASES = [
@@ -166,20 +146,20 @@ def test_replicate_and_pareto_flag_corpus(tmp_path, capsys, command, flags, mess
     assert not (tmp_path / "never").exists()
 
 
-def test_out_that_is_not_a_folder(tmp_path, capsys):
+def test_out_that_is_not_a_folder(tmp_path, capsys, tiny_sweep_flags):
     afile = tmp_path / "afile"
     afile.write_text("mine")
     for out, message in ((afile, "is a file; give a folder"), (afile / "sub", "cannot create the folder")):
-        code, err = _run(["sweep", *TINY_FLAGS, "--out", str(out)], capsys)
+        code, err = _run(["sweep", *tiny_sweep_flags(extra=RESCORE_2), "--out", str(out)], capsys)
         assert code == 2 and "out: " in err and str(out) in err and message in err and "Traceback" not in err
     assert afile.read_text() == "mine"
 
 
-def test_foreign_folder_is_refused_untouched(tmp_path, capsys):
+def test_foreign_folder_is_refused_untouched(tmp_path, capsys, tiny_sweep_flags):
     foreign = tmp_path / "foreign"
     foreign.mkdir()
     (foreign / "metadata.json").write_text("{not json")
-    code, err = _run(["sweep", *TINY_FLAGS, "--out", str(foreign)], capsys)
+    code, err = _run(["sweep", *tiny_sweep_flags(extra=RESCORE_2), "--out", str(foreign)], capsys)
     assert code == 2 and "is not a sweep's metadata" in err
     assert [p.name for p in foreign.iterdir()] == ["metadata.json"]
     code, err = _run(["report", str(foreign)], capsys)
@@ -187,18 +167,18 @@ def test_foreign_folder_is_refused_untouched(tmp_path, capsys):
 
 
 @pytest.fixture(scope="module")
-def finished(tmp_path_factory) -> Path:
+def finished(tmp_path_factory, tiny_sweep_flags) -> Path:
     out = tmp_path_factory.mktemp("bad") / "run"
-    assert main(["sweep", *TINY_FLAGS, "--out", str(out)]) == 0
+    assert main(["sweep", *tiny_sweep_flags(extra=RESCORE_2), "--out", str(out)]) == 0
     return out
 
 
-def test_truncated_results_are_refused_and_kept(finished, tmp_path, capsys):
+def test_truncated_results_are_refused_and_kept(finished, tmp_path, capsys, tiny_sweep_flags):
     out = shutil.copytree(finished, tmp_path / "run")
     parquet = out / "results.parquet"
     parquet.write_bytes(parquet.read_bytes()[:40])
     before = parquet.read_bytes()
-    code, err = _run(["sweep", *TINY_FLAGS, "--out", str(out)], capsys)
+    code, err = _run(["sweep", *tiny_sweep_flags(extra=RESCORE_2), "--out", str(out)], capsys)
     assert code == 2 and "results.parquet is unreadable" in err and "Traceback" not in err
     assert parquet.read_bytes() == before  # nothing overwritten
     code, err = _run(["report", str(out)], capsys)
@@ -207,12 +187,12 @@ def test_truncated_results_are_refused_and_kept(finished, tmp_path, capsys):
         load_results(out)
 
 
-def test_corrupt_checkpoint_and_policy(finished, tmp_path, capsys):
+def test_corrupt_checkpoint_and_policy(finished, tmp_path, capsys, tiny_sweep_flags):
     out = shutil.copytree(finished, tmp_path / "run")
     (checkpoint,) = (out / "checkpoints").glob("*.msgpack")
     checkpoint.write_bytes(b"\x00garbage")
     (out / "results.parquet").unlink()  # so the rerun has a batch to resume from the checkpoint
-    code, err = _run(["sweep", *TINY_FLAGS, "--out", str(out)], capsys)
+    code, err = _run(["sweep", *tiny_sweep_flags(extra=RESCORE_2), "--out", str(out)], capsys)
     assert code == 2 and "is unreadable" in err and "delete it" in err and "Traceback" not in err
     (policy,) = (out / "policies").glob("*.msgpack")
     policy.write_bytes(policy.read_bytes()[:100])

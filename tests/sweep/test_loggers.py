@@ -107,32 +107,8 @@ def test_wandb_offline_needs_no_network(logged):
     assert all(next(p.glob("run-*.wandb")).stat().st_size > 0 for p in runs)
 
 
-def test_cli_tensorboard_flag_and_bad_mode(tmp_path, capsys):
-    args = [
-        "sweep",
-        "--env",
-        "CartPole-v0",
-        "--agent",
-        "ppo",
-        "--cost",
-        "0.1",
-        "--seeds",
-        "1",
-        "--steps",
-        "1024",
-        "--eval-every",
-        "1024",
-        "--eval-episodes",
-        "2",
-        "--set",
-        "num_envs=4",
-        "--set",
-        "num_steps=32",
-        "--no-progress",
-        "--tensorboard",
-        "--out",
-        str(tmp_path / "run"),
-    ]
+def test_cli_tensorboard_flag_and_bad_mode(tmp_path, capsys, tiny_sweep_flags):
+    args = ["sweep", *tiny_sweep_flags(steps=1024, extra=("--tensorboard",)), "--out", str(tmp_path / "run")]
     assert main(args) == 0
     results = pd.read_parquet(tmp_path / "run" / "results.parquet")
     (run_dir,) = (tmp_path / "run" / "tensorboard").iterdir()

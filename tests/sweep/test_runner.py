@@ -246,36 +246,10 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
     pd.testing.assert_frame_equal(again.summary, full.summary)
 
 
-def test_sigkill_then_rerun_resumes(tmp_path):
+def test_sigkill_then_rerun_resumes(tmp_path, tiny_sweep_flags):
     """A real SIGKILL of the command-line process at an arbitrary point; the same command then completes."""
     out = tmp_path / "run"
-    command = [
-        sys.executable,
-        "-m",
-        "train",
-        "sweep",
-        "--env",
-        "CartPole-v0",
-        "--agent",
-        "ppo",
-        "--cost",
-        "0.1",
-        "--seeds",
-        "2",
-        "--steps",
-        "8192",
-        "--eval-every",
-        "1024",
-        "--eval-episodes",
-        "2",
-        "--set",
-        "num_envs=4",
-        "--set",
-        "num_steps=32",
-        "--out",
-        str(out),
-        "--no-progress",
-    ]
+    command = [sys.executable, "-m", "train", "sweep", *tiny_sweep_flags(steps=8192, seeds=2), "--out", str(out)]
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}
     process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 240
