@@ -55,11 +55,6 @@ class FinishedEpisodes:
         zero = jnp.zeros(shape, jnp.float32)
         return cls(zero, EpisodeMetrics(zero, zero, zero, zero))
 
-    @classmethod
-    def of(cls, transitions: Transition) -> FinishedEpisodes:
-        """The finished episodes in a batch of transitions that keep their `episode` metrics (any leading axes)."""
-        return cls.zeros().add(transitions.episode_done, transitions.episode).total()
-
     def add(self, done: jax.Array, episode: EpisodeMetrics) -> FinishedEpisodes:
         """These plus the episodes that end where `done`, with metrics `episode` (elementwise, broadcasting)."""
         done = done.astype(jnp.float32)
