@@ -82,7 +82,8 @@ def write_compile_cache_whole() -> None:
     JAX 0.10 writes an entry in place, so a process killed mid-write (a preempted cluster worker: the cluster
     runner gives its workers one cache) leaves a truncated entry, and a process that reads an entry while another
     writes it sees half of one; loading either aborts the reader (a C++ abort, not an exception). Applied when
-    `amjax.agents` is imported; idempotent. A cache with a size limit keeps JAX's own locked writes."""
+    `amjax.envs` is imported (every amjax program starts there); idempotent. A cache with a size limit keeps JAX's
+    own locked writes."""
     try:
         from jax._src import lru_cache
     except ImportError:  # a JAX without this private module: left as it is

@@ -14,6 +14,7 @@ import argparse
 import gzip
 import json
 import re
+import shutil
 import sys
 import tempfile
 import time
@@ -27,6 +28,7 @@ import jax  # noqa: E402
 
 from benchmarks.throughput import runners  # noqa: E402
 from benchmarks.throughput.cases import _default_buffer, _round_steps, _steps_per_update  # noqa: E402
+from benchmarks.throughput.timing import interleaved  # noqa: E402
 
 _INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*.*?metadata=\{([^}]*)\}")
 _FIELD = re.compile(r'(\w+)=(?:"((?:[^"\\]|\\.)*)"|(\S+))')
@@ -136,30 +138,10 @@ def _kernel_figures(summary: dict[str, Any]) -> str:
 
 def build(case: dict[str, Any]) -> dict[str, Any]:
     """impl -> (run, optimised HLO texts) for amjax and the reference, compiled as the throughput benchmark does."""
-    import jax.numpy as jnp
-    import numpy as np
-
     programs = runners._compile_amjax({**case, "impl": "amjax"})
-    run_amjax = runners.sweep_run(programs)
-
-    sys.path.insert(0, str(runners.BENCHMARKS))
-    if case["agent"] == "ppo":
-        from reference_ppo import make_train
-    else:
-        from reference_dqn import make_train
-    from benchmarks.throughput.cases import agent_config, costs
-
-    config = agent_config(case, 0.0).validate()
-    train = jax.jit(jax.vmap(make_train(config, vanilla=False, evaluate=True)))
-    keys = jnp.stack([jax.random.PRNGKey(seed) for seed in range(case["configs"])])
-    case_costs = jnp.asarray(costs(case), jnp.float32)
-    reference = train.lower(keys, case_costs).compile()
-
-    def run_reference():
-        return float(np.median(np.asarray(jax.device_get(reference(keys, case_costs)))[:, -1]))
-
+    reference, run_reference, _ = runners.compile_reference(case)
     return {
-        "amjax": (run_amjax, [programs.chunk.as_text(), programs.init.as_text()]),
+        "amjax": (runners.sweep_run(programs), [programs.chunk.as_text(), programs.init.as_text()]),
         "reference": (run_reference, [reference.as_text()]),
     }
 
@@ -198,14 +180,7 @@ def main(argv: list[str] | None = None) -> None:
     start = time.perf_counter()
     built = build(case)
     print(f"compiled both in {time.perf_counter() - start:.1f} s", flush=True)
-    walls: dict[str, list[float]] = {impl: [] for impl in built}
-    for run, _ in built.values():
-        run()  # warm-up
-    for round_ in range(args.rounds):
-        for impl in list(built) if round_ % 2 == 0 else list(built)[::-1]:
-            start = time.perf_counter()
-            built[impl][0]()
-            walls[impl].append(time.perf_counter() - start)
+    walls = interleaved({impl: run for impl, (run, _) in built.items()}, args.rounds)
     env_steps = case["configs"] * case["steps"]
     result: dict[str, Any] = {"device": f"{device.device_kind} ({jax.default_backend()})", "case": case, "impls": {}}
     for impl, (run, texts) in built.items():
@@ -221,6 +196,7 @@ def main(argv: list[str] | None = None) -> None:
         for text in texts:
             sources.update(hlo_sources(text))
         summary = summarise(device_events(trace_dir), sources, args.top)
+        shutil.rmtree(trace_dir)  # hundreds of MB for a long run; the summary is what is kept
         summary["wall_s"] = walls[impl]
         summary["env_steps_per_s"] = env_steps / min(walls[impl])
         result["impls"][impl] = summary

@@ -150,8 +150,9 @@ def run_overhead(case: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def run_reference(case: dict[str, Any]) -> dict[str, Any]:
-    """benchmarks/reference_{ppo,dqn}.py as `jax.jit(jax.vmap(train))(keys, costs)`."""
+def compile_reference(case: dict[str, Any]) -> tuple[Any, Callable[[], float | None], float]:
+    """benchmarks/reference_{ppo,dqn}.py compiled as `jax.jit(jax.vmap(train))(keys, costs)`: the compiled program,
+    a `run` that trains once (the median last test return, or None without evaluation) and the compile time."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -166,7 +167,6 @@ def run_reference(case: dict[str, Any]) -> dict[str, Any]:
     train = jax.jit(jax.vmap(make_train(config, vanilla=case["vanilla"], evaluate=case["reference_eval"])))
     keys = jnp.stack([jax.random.PRNGKey(seed) for seed in range(case["configs"])])
     case_costs = jnp.asarray(costs(case), jnp.float32)
-    baseline = current_rss_mib()
 
     start = time.perf_counter()
     compiled = train.lower(keys, case_costs).compile()
@@ -176,6 +176,13 @@ def run_reference(case: dict[str, Any]) -> dict[str, Any]:
         out = np.asarray(jax.device_get(compiled(keys, case_costs)))
         return float(np.median(out[:, -1])) if case["reference_eval"] else None
 
+    return compiled, run, compile_s
+
+
+def run_reference(case: dict[str, Any]) -> dict[str, Any]:
+    """benchmarks/reference_{ppo,dqn}.py as `jax.jit(jax.vmap(train))(keys, costs)`."""
+    baseline = current_rss_mib()
+    _, run, compile_s = compile_reference(case)
     result = timed(run, case["repeats"])
     eval_return = result.pop("out")
     return {"compile_s": compile_s, **result, "eval_return": eval_return, "baseline_rss_mib": baseline}

@@ -38,9 +38,9 @@ def timed(run: Callable[..., Any], repeats: int, prepare: Callable[[], Any] | No
     return {"run_s": best[0], "run_cpu_s": best[1], "run_all_s": [t[0] for t in times], "out": best[2]}
 
 
-def interleaved(runs: dict[bool, Callable[[], Any]], rounds: int) -> dict[bool, list[float]]:
+def interleaved(runs: dict[Any, Callable[[], Any]], rounds: int) -> dict[Any, list[float]]:
     """Wall times of each run, in alternation (a, b, b, a, ...), after one untimed run of each."""
-    times: dict[bool, list[float]] = {key: [] for key in runs}
+    times: dict[Any, list[float]] = {key: [] for key in runs}
     for run in runs.values():
         run()  # warm-up: first-run allocations stay out of the timings
     for round_ in range(rounds):
