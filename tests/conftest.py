@@ -8,6 +8,7 @@ that vmap it themselves.
 
 from __future__ import annotations
 
+import gc
 import os
 import tempfile
 from pathlib import Path
@@ -33,6 +34,24 @@ jax.config.update("jax_compilation_cache_dir", COMPILE_CACHE)
 # name, then renamed: `amjax.files.write_compile_cache_whole`), so no process reads half of one, whether its writer
 # was killed or is still writing. The test processes do it from the start.
 write_compile_cache_whole()
+
+# Every loaded XLA CPU executable keeps a few memory mappings per kernel (a training program: 3,000-5,000), and JAX
+# keeps every program a process compiled. An xdist worker that runs half the suite passed Linux's per-process limit
+# (vm.max_map_count, 65,530 by default): LLVM's loader then failed ("Cannot allocate memory") and the worker died
+# (SIGSEGV / SIGABRT) loading the next program. Past half the limit, a test's programs are dropped after it ends.
+_MAPS = Path("/proc/self/maps")
+_MAX_MAPS = Path("/proc/sys/vm/max_map_count")
+
+
+@pytest.fixture(autouse=True)
+def _release_programs_near_the_map_limit():
+    yield
+    if _MAPS.exists() and _MAX_MAPS.exists():
+        with _MAPS.open() as maps:
+            count = sum(1 for _ in maps)
+        if count > int(_MAX_MAPS.read_text()) // 2:
+            jax.clear_caches()
+            gc.collect()
 
 
 class Rollout(NamedTuple):
