@@ -41,17 +41,17 @@ write_compile_cache_whole()
 # (SIGSEGV / SIGABRT) loading the next program. Past half the limit, a test's programs are dropped after it ends.
 _MAPS = Path("/proc/self/maps")
 _MAX_MAPS = Path("/proc/sys/vm/max_map_count")
+_RELEASE_ABOVE = int(_MAX_MAPS.read_text()) // 2 if _MAPS.exists() and _MAX_MAPS.exists() else None  # Linux only
 
 
 @pytest.fixture(autouse=True)
 def _release_programs_near_the_map_limit():
     yield
-    if _MAPS.exists() and _MAX_MAPS.exists():
+    if _RELEASE_ABOVE is not None:
         with _MAPS.open() as maps:
-            count = sum(1 for _ in maps)
-        if count > int(_MAX_MAPS.read_text()) // 2:
-            jax.clear_caches()
-            gc.collect()
+            if sum(1 for _ in maps) > _RELEASE_ABOVE:
+                jax.clear_caches()
+                gc.collect()
 
 
 class Rollout(NamedTuple):

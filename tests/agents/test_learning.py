@@ -39,6 +39,13 @@ def train_rows(algo, configs: list, seeds: list[int]):
     return rows
 
 
+def at_best_evaluation(rows, *values):
+    """Each configuration's `values` (arrays [configs, evals]) at its best test costed return (the paper's metric,
+    and the policy a sweep saves)."""
+    best = np.argmax(np.asarray(rows.test.costed_return), axis=1)
+    return [np.asarray(value)[np.arange(len(best)), best] for value in values]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(BUDGETS))
 def test_solves_cartpole_and_measures_less_under_cost(name):
@@ -46,10 +53,7 @@ def test_solves_cartpole_and_measures_less_under_cost(name):
     rows = train_rows(algo, [base.replace(cost=c) for c in COSTS for _ in SEEDS], [s for _ in COSTS for s in SEEDS])
     shape = (len(COSTS), len(SEEDS))
     raw = np.asarray(rows.test.raw_return)
-    measured = np.asarray(rows.test.measured_fraction)
-    best = np.argmax(np.asarray(rows.test.costed_return), axis=1)  # the best test costed return of each configuration
-    best_raw = raw[np.arange(len(best)), best].reshape(shape)
-    best_measured = measured[np.arange(len(best)), best].reshape(shape)
+    best_raw, best_measured = (v.reshape(shape) for v in at_best_evaluation(rows, raw, rows.test.measured_fraction))
     final_raw = raw[:, -1].reshape(shape)
     message = (
         f"final raw returns {final_raw.tolist()}; at the best evaluation: raw {best_raw.tolist()}, "
@@ -70,10 +74,7 @@ def test_drqn_skips_measurements_at_the_default_budget():
     drqn_default_budget.md): a speed change that costs the skipping policy fails here."""
     config = DRQNConfig(total_timesteps=102_400, eval_every=10_240, cost=0.3)
     rows = train_rows(DRQN, [config] * len(SEEDS), list(SEEDS))
-    costed = np.asarray(rows.test.costed_return)
-    best = np.argmax(costed, axis=1)
-    best_costed = costed[np.arange(len(best)), best]
-    best_measured = np.asarray(rows.test.measured_fraction)[np.arange(len(best)), best]
+    best_costed, best_measured = at_best_evaluation(rows, rows.test.costed_return, rows.test.measured_fraction)
     message = f"best costed returns {best_costed.round(1).tolist()}, measured there {best_measured.round(3).tolist()}"
     assert np.median(best_costed) >= 175, message
     assert np.median(best_measured) < 0.4, message
