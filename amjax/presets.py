@@ -15,7 +15,7 @@ from __future__ import annotations
 # n_epochs 4, ent_coef 0.01) with SB3's PPO defaults for the rest (learning_rate 3e-4 constant, clip_range 0.2,
 # vf_coef 0.5, max_grad_norm 0.5, separate 64x64 tanh actor and critic); batch_size 64 -> 16 * 1024 / 64 = 256
 # minibatches. With it amjax's PPO, trained in the JAX port, scores 236.5 in Gymnasium's LunarLander-v3
-# (benchmarks/lunar_lander_transfer.py). Test policy "greedy_control" (docs/eval_policy.md): the greedy policy of a
+# (experiments/lunar_lander_transfer.py). Test policy "greedy_control" (docs/eval_policy.md): the greedy policy of a
 # costed run crashes (a memoryless argmax repeats itself on a stale observation); the most probable control with the
 # policy's own measuring draws scored 143 / 87 / 29 re-scored at costs 0.1 / 0.2 / 0.3 on tuning seeds (greedy:
 # -311 to -658), the whole stochastic policy 87 / 83 / 80. A vanilla run is greedy either way. The initial policy

@@ -8,6 +8,7 @@ that vmap it themselves.
 
 from __future__ import annotations
 
+import functools
 import gc
 import os
 import tempfile
@@ -15,6 +16,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
+import numpy as np
 import pytest
 
 from amjax.files import write_compile_cache_whole
@@ -52,6 +54,34 @@ def _release_programs_near_the_map_limit():
             if sum(1 for _ in maps) > _RELEASE_ABOVE:
                 jax.clear_caches()
                 gc.collect()
+
+
+# Test tiers. `python -m pytest -q` (the README's command) runs the default tier: every test not marked slow. A test is
+# marked slow when it takes over about 20 s on two CPU cores with a warm compile cache (learning runs, kill-and-resume
+# chains through subprocesses, the notebooks, the README demo, whole sweeps, large LunarLander batches);
+# `--tier slow` runs those alone and `--tier all` both. CI runs both tiers (.ci/run). A test named on the command line
+# (`path::name`) runs whatever its tier, and `-m EXPR` selects by its own expression instead.
+TIERS = ("default", "slow", "all")
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--tier",
+        choices=TIERS,
+        default="default",
+        help="default: tests not marked slow (the README's command); slow: the slow ones; all: both",
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    tier = config.getoption("--tier")
+    named = any("::" in str(arg) for arg in config.args)
+    if tier == "all" or config.option.markexpr or named:
+        return
+    chosen = {item.nodeid: (item.get_closest_marker("slow") is not None) == (tier == "slow") for item in items}
+    if not all(chosen.values()):
+        config.hook.pytest_deselected(items=[item for item in items if not chosen[item.nodeid]])
+        items[:] = [item for item in items if chosen[item.nodeid]]
 
 
 class Rollout(NamedTuple):
@@ -161,3 +191,54 @@ def _tiny_sweep_flags(*, steps: int = 2048, seeds: int = 1, extra: tuple[str, ..
 def tiny_sweep_flags():
     """`tiny_sweep_flags(steps=2048, seeds=1, extra=())`: the flags of a small command-line sweep (no --out)."""
     return _tiny_sweep_flags
+
+
+class TrainingPrograms(NamedTuple):
+    """One algorithm's jitted training programs, as the sweep runner builds them (each compiles once per shape)."""
+
+    alone: Any  # (config, key) -> (final state, EvalRows): one configuration
+    batched: Any  # (stacked configs, keys) -> (final states, EvalRows [configs, evals]): vmapped
+
+
+@functools.cache
+def _training_programs(algo) -> TrainingPrograms:
+    from amjax.agents import init_run, run_evals  # after the device count is set above (amjax starts JAX's backend)
+
+    alone = jax.jit(lambda c, k: run_evals(algo, c, init_run(algo, c, k), c.num_evals))
+    init = jax.jit(jax.vmap(lambda c, k: init_run(algo, c, k)))
+    batched = jax.jit(jax.vmap(lambda c, s: run_evals(algo, c, s, c.num_evals)))
+    return TrainingPrograms(alone, lambda configs, keys: batched(configs, init(configs, keys)))
+
+
+BATCH_FIELDS = ("eval_return", "train_return", "loss", "eval_measurements")
+
+
+def _assert_batch_equals_alone(algo, configs, keys, fields=BATCH_FIELDS, lanes=None):
+    """`configs` (a list, or configs already stacked) trained as one vmapped program: each lane in `lanes` (default:
+    all) equals its configuration trained alone, to float rounding. Returns the batch's rows and the final states of
+    the runs alone."""
+    from amjax.agents import stack_configs, unstack_config
+
+    stacked = configs if not isinstance(configs, list) else stack_configs([c.validate() for c in configs])
+    programs = _training_programs(algo)
+    _, rows = programs.batched(stacked, keys)
+    states = []
+    for i in range(len(keys)) if lanes is None else lanes:
+        state, alone = programs.alone(unstack_config(stacked, i), keys[i])
+        states.append(state)
+        for field in fields:
+            np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
+    return rows, states
+
+
+@pytest.fixture(scope="session")
+def training_programs():
+    """`training_programs(algo) -> TrainingPrograms(alone, batched)`: cached per algorithm."""
+    return _training_programs
+
+
+@pytest.fixture(scope="session")
+def assert_batch_equals_alone():
+    """`assert_batch_equals_alone(algo, configs, keys, fields=..., lanes=None) -> (rows, states alone)`: config i
+    inside the vmapped batch equals config i trained alone."""
+    return _assert_batch_equals_alone

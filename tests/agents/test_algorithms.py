@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -19,8 +18,6 @@ from amjax.agents import (
     PPOConfig,
     PPORNNConfig,
     agent_of,
-    init_run,
-    run_evals,
     stack_configs,
     training_env,
     unstack_config,
@@ -137,66 +134,40 @@ def test_replay_ring_and_sampling():
     assert int(buffer.size) == 6 and int(buffer.position) == 0
 
 
-@functools.cache
-def _compiled(name):
-    """One jitted program per algorithm for single runs, one for vmapped batches (compiled once per shape)."""
-    algo = ALGOS[name]
-    alone = jax.jit(lambda c, k: run_evals(algo, c, init_run(algo, c, k), c.num_evals))
-    init = jax.jit(jax.vmap(lambda c, k: init_run(algo, c, k)))
-    batched = jax.jit(jax.vmap(lambda c, s: run_evals(algo, c, s, c.num_evals)))
-    return alone, lambda configs, keys: batched(configs, init(configs, keys))
-
-
-def _run(name, config, key):
-    return _compiled(name)[0](config, key)
-
-
-def _assert_batch_equals_alone(name, configs, keys):
-    """`configs` trained as one vmapped program: each equals its run alone (returns the batch's rows and the
-    final states of the runs alone)."""
-    stacked = stack_configs([c.validate() for c in configs])
-    _, rows = _compiled(name)[1](stacked, keys)
-    states = []
-    for i in range(len(configs)):
-        state, alone = _run(name, unstack_config(stacked, i), keys[i])
-        states.append(state)
-        for field in ("eval_return", "train_return", "loss", "eval_measurements"):
-            np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
-    return rows, states
-
-
 @pytest.mark.parametrize("name", ["ppo", "dqn", "ppo-box"])
-def test_seeds_determinism_and_vmap_equals_alone(name):
+def test_seeds_determinism_and_vmap_equals_alone(name, assert_batch_equals_alone, training_programs):
     base = TINY[name]
     configs = [base.replace(cost=c, learning_rate=lr) for c, lr in [(0.0, 1e-3), (0.2, 3e-4), (0.1, 5e-4)]]
     keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1, 2)])
-    _assert_batch_equals_alone(name, configs, keys)
+    assert_batch_equals_alone(ALGOS[name], configs, keys)
     stacked = stack_configs(configs)
     # Same seed -> bit-identical; different seed -> different.
-    _, again = _run(name, unstack_config(stacked, 0), keys[0])
-    _, first = _run(name, unstack_config(stacked, 0), keys[0])
-    _, other = _run(name, unstack_config(stacked, 0), keys[1])
+    alone = training_programs(ALGOS[name]).alone
+    _, again = alone(unstack_config(stacked, 0), keys[0])
+    _, first = alone(unstack_config(stacked, 0), keys[0])
+    _, other = alone(unstack_config(stacked, 0), keys[1])
     assert np.array_equal(np.asarray(first.loss), np.asarray(again.loss))
     assert np.array_equal(np.asarray(first.train.costed_return), np.asarray(again.train.costed_return), equal_nan=True)
     assert not np.array_equal(np.asarray(first.loss), np.asarray(other.loss))
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn"])
-def test_train_group_equals_all_at_once(name):
+def test_train_group_equals_all_at_once(name, assert_batch_equals_alone, training_programs):
     """`train_group` = 2 trains 4 vmapped configurations as 2 groups of 2 (a `lax.map`): each configuration
     equals its ungrouped batch row and its run alone."""
     base = TINY[name]
     configs = [base.replace(cost=c, train_group=2) for c in (0.0, 0.1, 0.2, 0.3)]
     keys = jnp.stack([jax.random.PRNGKey(s) for s in (4, 5, 6, 7)])
-    grouped, _ = _assert_batch_equals_alone(name, configs, keys)
-    _, ungrouped = _compiled(name)[1](stack_configs([c.replace(train_group=0) for c in configs]), keys)
+    grouped, _ = assert_batch_equals_alone(ALGOS[name], configs, keys)
+    ungrouped_configs = stack_configs([c.replace(train_group=0) for c in configs])
+    _, ungrouped = training_programs(ALGOS[name]).batched(ungrouped_configs, keys)
     for field in ("eval_return", "train_return", "loss"):
         np.testing.assert_allclose(grouped.columns()[field], ungrouped.columns()[field], rtol=2e-4, atol=2e-4)
     assert not np.array_equal(grouped.columns()["loss"][0], grouped.columns()["loss"][1])
 
 
 @pytest.mark.parametrize("name", ["dqn", "ppo-box"])
-def test_instrument_prices_vmap_equals_alone(name):
+def test_instrument_prices_vmap_equals_alone(name, assert_batch_equals_alone):
     """Instruments' prices are traced: a batch of prices is one program, config i in it equals config i alone
     (CartPole's cart and pole under Dueling DQN's factored head; Pendulum's angle and rate, two Bernoulli measure
     entries)."""
@@ -205,18 +176,18 @@ def test_instrument_prices_vmap_equals_alone(name):
     else:
         base = TINY[name].replace(instruments="default", measure_head="factored")
     configs = [base.replace(cost=c, instrument_costs=p) for c, p in [(0.0, (0.05, 0.3)), (0.1, (0.3, 0.0))]]
-    rows, _ = _assert_batch_equals_alone(name, configs, jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
+    rows, _ = assert_batch_equals_alone(ALGOS[name], configs, jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
     assert np.all(np.isfinite(rows.columns()["loss"]))
 
 
 @pytest.mark.parametrize("name", ["dqn", "ppo"])
-def test_cost_conditioned_runs(name):
+def test_cost_conditioned_runs(name, assert_batch_equals_alone):
     """A cost-conditioned run's range is traced: a batch of ranges is one program, config i in it equals config i
     alone. The greedy action of a trained conditioned policy changes with the cost it sees (the scaled last entry
     of the observation), and `SavedPolicy.evaluate(cost=c)` plays episodes at cost c."""
     base = TINY[name].replace(cost_conditioned=True)
     configs = [base.replace(cost_low=lo, cost_high=hi).validate() for lo, hi in [(0.0, 1.0), (0.2, 0.2)]]
-    _, states = _assert_batch_equals_alone(name, configs, jnp.stack([jax.random.PRNGKey(s) for s in (3, 1)]))
+    _, states = assert_batch_equals_alone(ALGOS[name], configs, jnp.stack([jax.random.PRNGKey(s) for s in (3, 1)]))
     config = configs[0]
     saved = SavedPolicy(agent_of(config), config, states[0].best_params)
     act, carry = saved.policy(num_envs=256)
@@ -243,10 +214,10 @@ def test_cost_conditioned_runs(name):
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn"])
-def test_divergent_configuration_is_flagged_alone(name):
+def test_divergent_configuration_is_flagged_alone(name, training_programs):
     configs = [TINY[name].replace(learning_rate=lr, max_grad_norm=1e30) for lr in (1e-3, 1e30, 3e-4)]
     keys = jnp.stack([jax.random.PRNGKey(0)] * 3)
-    states, rows = _compiled(name)[1](stack_configs(configs), keys)
+    states, rows = training_programs(ALGOS[name]).batched(stack_configs(configs), keys)
     diverged = np.asarray(states.diverged)
     assert diverged.tolist() == [False, True, False]
     assert np.asarray(rows.diverged)[1, -1]

@@ -25,9 +25,7 @@ from amjax.agents import (
     PPORNNConfig,
     agent_of,
     drqn,
-    init_run,
     ppo_rnn,
-    run_evals,
     stack_configs,
     unstack_config,
 )
@@ -64,16 +62,6 @@ LANES = {"drqn": Q_LANES, "dqn": Q_LANES, "ppo-rnn": PG_LANES, "ppo": PG_LANES}
 KEYS = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1, 2)])
 
 
-@functools.cache
-def _programs(name):
-    """(alone, batched) jitted programs of an algorithm, as the sweep runner builds them."""
-    algo = ALGORITHMS[name]
-    alone = jax.jit(lambda c, k: run_evals(algo, c, init_run(algo, c, k), c.num_evals))
-    init = jax.jit(jax.vmap(lambda c, k: init_run(algo, c, k)))
-    batched = jax.jit(jax.vmap(lambda c, s: run_evals(algo, c, s, c.num_evals)))
-    return alone, lambda configs, keys: batched(configs, init(configs, keys))
-
-
 def _setup(config):
     """The env and network an algorithm's functions take (`Algorithm.setup`)."""
     return ALGORITHMS[agent_of(config)].setup(config)
@@ -83,36 +71,42 @@ def _net(config):
     return _setup(config).network
 
 
-@functools.cache
-def _probe_run(name):
-    stacked = stack_configs([PROBE_CONFIGS[name].replace(**lane) for lane in LANES[name]])
-    states, rows = _programs(name)[1](stacked, KEYS)
-    return stacked, states, jax.device_get(rows)
+@pytest.fixture(scope="module")
+def probe_run(training_programs):
+    """`probe_run(name) -> (stacked configs, final states, rows)`: the memory probe's three lanes, trained once."""
+
+    @functools.cache
+    def run(name):
+        stacked = stack_configs([PROBE_CONFIGS[name].replace(**lane) for lane in LANES[name]])
+        states, rows = training_programs(ALGORITHMS[name]).batched(stacked, KEYS)
+        return stacked, states, jax.device_get(rows)
+
+    return run
 
 
 # -- the memory probe ---------------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("name", ["drqn", "ppo-rnn"])
-def test_recurrent_agents_solve_the_memory_probe(name):
-    _, _, rows = _probe_run(name)
+def test_recurrent_agents_solve_the_memory_probe(name, probe_run):
+    _, _, rows = probe_run(name)
     final = rows.test.costed_return[:, -1]
     assert np.all(final >= 0.8), f"final test returns {final} (optimum 1, memoryless 0.2)"
 
 
 @pytest.mark.parametrize("name", ["dqn", "ppo"])
-def test_feed_forward_agents_cannot_solve_the_memory_probe(name):
-    _, _, rows = _probe_run(name)
+def test_feed_forward_agents_cannot_solve_the_memory_probe(name, probe_run):
+    _, _, rows = probe_run(name)
     final = rows.test.costed_return[:, -1]
     # A memoryless policy earns 0.2 in expectation; the mean of 64 episodes has a standard deviation of 0.1.
     assert np.all(final <= 0.5), f"final test returns {final} (memoryless expectation 0.2)"
 
 
 @pytest.mark.parametrize("name", ["drqn", "ppo-rnn"])
-def test_vmapped_configuration_equals_it_alone(name):
-    stacked, _, rows = _probe_run(name)
+def test_vmapped_configuration_equals_it_alone(name, probe_run, training_programs):
+    stacked, _, rows = probe_run(name)
     for i in (0, 2):
-        _, alone = _programs(name)[0](unstack_config(stacked, i), KEYS[i])
+        _, alone = training_programs(ALGORITHMS[name]).alone(unstack_config(stacked, i), KEYS[i])
         for field in ("eval_return", "train_return", "loss"):
             np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
 
@@ -355,6 +349,7 @@ def test_cached_target_values_follow_the_target_network(monkeypatch):
     assert not np.allclose(cached, online, rtol=1e-3, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_burn_in_warms_up_the_state_without_gradient_or_loss():
     config, state = _drqn_buffer(burn_in=3)
     steps, start = sequence_sample(state.buffer, jax.random.PRNGKey(1), 32)

@@ -2,7 +2,7 @@
 
 T1 (exact game logic) and T2 (free-flight replay on Gymnasium's recorded draws) need
 ``box2d==2.3.10`` and are skipped without it. The statistical check (T3, heuristic controller,
-1000 episodes per env) is too slow for the suite: run ``benchmarks/lunar_lander_stats.py``.
+1000 episodes per env) is too slow for the suite: run ``experiments/lunar_lander_stats.py``.
 Compiled functions are cached at module level so each is compiled once.
 """
 
@@ -267,6 +267,7 @@ def test_auto_reset_matches_gymnax_select_both() -> None:
     np.testing.assert_allclose(reward, ref_reward, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_large_batch_steps_in_groups(monkeypatch) -> None:
     """A vmapped batch of more than `STEP_GROUP` envs steps in groups (`in_groups`); each env's results are the
     same as with the whole batch at once (to XLA's rounding), auto-resets included."""
@@ -291,6 +292,7 @@ def test_large_batch_steps_in_groups(monkeypatch) -> None:
     np.testing.assert_allclose(reward, ref_reward, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_gpu_layout_steps_as_the_cpu_layout(monkeypatch) -> None:
     """`amjax.strategy`'s GPU layout of the step (the batch at once instead of in `STEP_GROUP` groups, the solves
     unmaterialised instead of behind conditionals) gives what the CPU layout gives, step by step from states spread

@@ -1,6 +1,6 @@
 """T4 (issue 5) in the suite: a PPO policy trained only in amjax's JAX LunarLander-v3 lands in Gymnasium's Box2D one.
 
-The committed policy `docs/policies/lunar_lander_ppo.msgpack` was trained by `benchmarks/lunar_lander_transfer.py`
+The committed policy `docs/policies/lunar_lander_ppo.msgpack` was trained by `experiments/lunar_lander_transfer.py`
 (results in docs/lunar_lander.md, section T4). This test loads it through amjax's policy loader and plays it greedily
 in real `gymnasium.make("LunarLander-v3")`, so it fails if the loader, the network or the port that the policy was
 trained in (through what the policy learnt) breaks. `gymnasium.make("LunarLander-v3")` is Gymnasium's own; without
@@ -32,7 +32,7 @@ MIN_THRESHOLD = 0.0  # no episode of the 100 ended below 98
 def _benchmark():
     """The benchmark script as a module: the test plays the policy with its `gymnasium_returns`, the loop that
     produced the documented 100-seed numbers."""
-    path = ROOT / "benchmarks" / "lunar_lander_transfer.py"
+    path = ROOT / "experiments" / "lunar_lander_transfer.py"
     spec = importlib.util.spec_from_file_location("_lunar_lander_transfer", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)

@@ -164,6 +164,7 @@ def compare_with_reference() -> dict[str, np.ndarray]:
     return tr
 
 
+@pytest.mark.slow
 def test_matches_scipy_step_by_step() -> None:
     tr = compare_with_reference()
     # The episodes cover the cold and the runaway terminations and the region near 380 K.

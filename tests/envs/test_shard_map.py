@@ -24,7 +24,9 @@ STEPS = {"LunarLander-v3": 2}
 ENVS_PER_DEVICE = {"LunarLander-v3": 40}
 
 
-@pytest.mark.parametrize("env_id", ENV_IDS)
+@pytest.mark.parametrize(
+    "env_id", [pytest.param(e, marks=pytest.mark.slow) if e == "LunarLander-v3" else e for e in ENV_IDS]
+)
 def test_reset_and_step_under_shard_map(env_id: str) -> None:
     env, params = amjax.make(env_id, cost=0.1)
     steps = STEPS.get(env_id, 3)

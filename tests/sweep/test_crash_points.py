@@ -146,6 +146,7 @@ def local_points(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
     return root / "full", points
 
 
+@pytest.mark.slow
 def test_every_local_commit_point_recovers(local_points, tmp_path):
     """Stopped just before or just after any rename, the same `run_sweep` call finishes the sweep exactly as the
     uninterrupted one; the reruns of the states just after a batch's re-scores and just before its marker are

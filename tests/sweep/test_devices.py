@@ -39,6 +39,7 @@ def _table(result):
     return result.results.sort_values(["config_id", "env_steps"]).reset_index(drop=True)[COLUMNS]
 
 
+@pytest.mark.slow
 def test_sharded_sweep_equals_one_device(tmp_path):
     assert len(jax.devices()) >= 2  # tests/conftest.py asks for two
     spread = run_sweep(ODD, tmp_path / "spread", progress=False)
@@ -47,6 +48,7 @@ def test_sharded_sweep_equals_one_device(tmp_path):
     pd.testing.assert_frame_equal(_table(spread), _table(alone))
 
 
+@pytest.mark.slow
 def test_resume_on_another_device_count(tmp_path):
     """A sweep checkpointed on one device resumes on two (the checkpoint holds the real rows only)."""
     out = tmp_path / "run"

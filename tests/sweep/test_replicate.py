@@ -50,6 +50,7 @@ def test_default_grid_is_the_papers_and_extended_adds_the_recurrent_agents():
     assert replicate_grid(("Acrobot-v1",), ("drqn",))["Acrobot-v1"].agents == ("drqn",)
 
 
+@pytest.mark.slow
 def test_replicate_runs_reports_and_resumes(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(presets.QUICK_BUDGETS, "CartPole-v0", (2048, 1024))
     args = [
@@ -83,6 +84,7 @@ def test_replicate_runs_reports_and_resumes(tmp_path, monkeypatch, capsys):
     assert json.loads((tmp_path / "CartPole-v0" / "wall_time.json").read_text()) == {"seconds": again, "invocations": 2}
 
 
+@pytest.mark.slow
 def test_next_environment_compiles_while_one_trains(tmp_path, monkeypatch):
     """One compile queue across the environments: the next environment's batches compile on the background thread
     (in training order) before this one's report, and a rerun of the finished grid compiles nothing."""

@@ -246,6 +246,7 @@ def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
     pd.testing.assert_frame_equal(again.summary, full.summary)
 
 
+@pytest.mark.slow
 def test_sigkill_then_rerun_resumes(tmp_path, tiny_sweep_flags):
     """A real SIGKILL of the command-line process at an arbitrary point; the same command then completes."""
     out = tmp_path / "run"

@@ -8,8 +8,8 @@ policies re-scored on 100 fresh episodes, the measured fraction of those episode
 evaluation costed reward over training (the area under the learning curve, divided by the number of evaluations)
 and the env steps at which the evaluation first reached 90% of that run's best.
 
-    python benchmarks/measure_head.py --env CartPole-v0 Acrobot-v1 --out runs/measure_head
-    python benchmarks/measure_head.py --env CartPole-v0 --smoke --out /tmp/measure_head
+    python experiments/measure_head.py --env CartPole-v0 Acrobot-v1 --out runs/measure_head
+    python experiments/measure_head.py --env CartPole-v0 --smoke --out /tmp/measure_head
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import amjax
 
 amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the experiments are not installed
 
 from amjax.analysis import load_results, to_markdown  # noqa: E402
 from amjax.presets import env_hyperparams  # noqa: E402

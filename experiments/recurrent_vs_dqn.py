@@ -7,9 +7,9 @@ issue's claims: DRQN measures on fewer than 50% of steps and reaches a higher me
 Last, it draws the measurement maps (10 greedy test episodes) of each agent's best configuration at the highest cost
 (`--maps-cost`) from the sweep's saved best policies, and prints each agent's longest run of unmeasured steps.
 
-    python benchmarks/recurrent_vs_dqn.py --out runs/recurrent_vs_dqn \
+    python experiments/recurrent_vs_dqn.py --out runs/recurrent_vs_dqn \
         --maps docs/figures/recurrent_maps_cost0.3.png                                  # the full experiment
-    python benchmarks/recurrent_vs_dqn.py --smoke --out /tmp/recurrent_smoke           # a tiny smoke run
+    python experiments/recurrent_vs_dqn.py --smoke --out /tmp/recurrent_smoke           # a tiny smoke run
 
 The full run is 2 agents x 3 costs x 10 seeds x 153,600 env steps: 44 min on one CPU core, almost all of
 it DRQN (docs/recurrent.md has the results); rerunning the same command resumes it.

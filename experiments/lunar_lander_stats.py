@@ -1,7 +1,7 @@
 """LunarLander-v3 port vs Gymnasium: free-flight replay (T2), heuristic statistics (T3), speed.
 
-    python benchmarks/lunar_lander_stats.py                  # T2 200 seeds, T3 1000 episodes
-    python benchmarks/lunar_lander_stats.py --episodes 100 --replay-seeds 20   # quick look
+    python experiments/lunar_lander_stats.py                  # T2 200 seeds, T3 1000 episodes
+    python experiments/lunar_lander_stats.py --episodes 100 --replay-seeds 20   # quick look
 
 Needs ``box2d==2.3.10`` for the Gymnasium reference. Prints a markdown report (the numbers in
 docs/lunar_lander.md come from this script).

@@ -1,7 +1,7 @@
 """T4 (issue 5): train PPO only in amjax's JAX port of LunarLander-v3, then score it in real Gymnasium.
 
-    python benchmarks/lunar_lander_transfer.py [--out runs/lunar_lander_transfer] [--seeds 0 1 2]
-    python benchmarks/lunar_lander_transfer.py --eval-only docs/policies/lunar_lander_ppo.msgpack
+    python experiments/lunar_lander_transfer.py [--out runs/lunar_lander_transfer] [--seeds 0 1 2]
+    python experiments/lunar_lander_transfer.py --eval-only docs/policies/lunar_lander_ppo.msgpack
 
 1. Training (resumable: rerun the same command after an interruption) is amjax's own sweep runner on the plain
    env (`vanilla=True`), one vmapped program for all seeds; each seed's best greedy policy (chosen on the port's

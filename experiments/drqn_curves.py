@@ -16,9 +16,9 @@ Reads one or more sweep output folders (`amjax sweep ... --out DIR`, this code's
 different budgets) compare at one budget; the re-scored columns are then left empty for the runs it cuts short
 (they score the best policy of the whole run).
 
-    python benchmarks/drqn_curves.py old=/work/runs_drqn/old_102k head=/work/runs_drqn/head_102k
-    python benchmarks/drqn_curves.py head=runs/x --agents drqn --costs 0.2 0.3 --every 4  # every 4th point
-    python benchmarks/drqn_curves.py old=... head=... --upto 51200 --no-curves  # best figures at 51,200 steps
+    python experiments/drqn_curves.py old=/work/runs_drqn/old_102k head=/work/runs_drqn/head_102k
+    python experiments/drqn_curves.py head=runs/x --agents drqn --costs 0.2 0.3 --every 4  # every 4th point
+    python experiments/drqn_curves.py old=... head=... --upto 51200 --no-curves  # best figures at 51,200 steps
 
 A folder given as LABEL=PATH is labelled LABEL (else by its name). Runs are split by every hyperparameter column
 that varies in a folder (e.g. `--set drqn.hidden=(64,),(32,)`), so one sweep over a static field prints one row

@@ -7,9 +7,9 @@ medians over seeds of the best test costed reward (the paper's metric, biased up
 on 100 fresh episodes (the sweep's `best_policy_return`), and each instrument's read fraction on the fresh
 episodes; the measurement maps of the median seed's policy go beside it.
 
-    python benchmarks/instruments.py cartpole --out runs/instruments_cartpole   # CartPole-v0, cart vs pole
-    python benchmarks/instruments.py cstr --out runs/instruments_cstr           # the reactor, thermocouple vs assay
-    python benchmarks/instruments.py cartpole --smoke --out /tmp/instruments    # a tiny smoke run
+    python experiments/instruments.py cartpole --out runs/instruments_cartpole   # CartPole-v0, cart vs pole
+    python experiments/instruments.py cstr --out runs/instruments_cstr           # the reactor, thermocouple vs assay
+    python experiments/instruments.py cartpole --smoke --out /tmp/instruments    # a tiny smoke run
 
 CartPole-v0: the default instruments read the cart (x, x_dot) and the pole (theta, theta_dot); each price setting
 is run both ways round, so an agent that reads the cheap one more often in both is following the prices, not the
@@ -32,7 +32,7 @@ import amjax
 
 amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the experiments are not installed
 
 from amjax.analysis import load_results, plot_measurement_map, record_agent, to_markdown  # noqa: E402
 from amjax.presets import env_hyperparams  # noqa: E402

@@ -8,8 +8,8 @@ test costed reward over seeds (the paper's metric, biased upward), the same best
 episodes, the measured fractions, and the always-measure bound (the best evaluation episodes of the env's sweep,
 every step charged the cost). The joint table is written to OUT/table.md.
 
-    python benchmarks/brax_active_measure.py --out runs/brax_active_measure       # the full experiment
-    python benchmarks/brax_active_measure.py --smoke --out /tmp/brax_smoke         # a tiny smoke run
+    python experiments/brax_active_measure.py --out runs/brax_active_measure       # the full experiment
+    python experiments/brax_active_measure.py --smoke --out /tmp/brax_smoke         # a tiny smoke run
 
 Costs are per step, scaled to each env's rewards. inverted_pendulum pays 1 per step upright (as CartPole): 0.1 /
 0.2 / 0.3. reacher pays minus the fingertip's distance to the target and the squared action, about -0.2 to 0 per
@@ -32,7 +32,7 @@ import amjax
 
 amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the experiments are not installed
 
 from amjax.analysis import paper_table, to_markdown, write_report  # noqa: E402
 from amjax.analysis.report import format_paper_table  # noqa: E402
