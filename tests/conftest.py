@@ -210,23 +210,19 @@ def _training_programs(algo) -> TrainingPrograms:
     return TrainingPrograms(alone, lambda configs, keys: batched(configs, init(configs, keys)))
 
 
-BATCH_FIELDS = ("eval_return", "train_return", "loss", "eval_measurements")
-
-
-def _assert_batch_equals_alone(algo, configs, keys, fields=BATCH_FIELDS, lanes=None):
-    """`configs` (a list, or configs already stacked) trained as one vmapped program: each lane in `lanes` (default:
-    all) equals its configuration trained alone, to float rounding. Returns the batch's rows and the final states of
-    the runs alone."""
+def _assert_batch_equals_alone(algo, configs, keys):
+    """`configs` trained as one vmapped program: each equals its configuration trained alone, to float rounding.
+    Returns the batch's rows and the final states of the runs alone."""
     from amjax.agents import stack_configs, unstack_config
 
-    stacked = configs if not isinstance(configs, list) else stack_configs([c.validate() for c in configs])
+    stacked = stack_configs([c.validate() for c in configs])
     programs = _training_programs(algo)
     _, rows = programs.batched(stacked, keys)
     states = []
-    for i in range(len(keys)) if lanes is None else lanes:
+    for i in range(len(configs)):
         state, alone = programs.alone(unstack_config(stacked, i), keys[i])
         states.append(state)
-        for field in fields:
+        for field in ("eval_return", "train_return", "loss", "eval_measurements"):
             np.testing.assert_allclose(rows.columns()[field][i], alone.columns()[field], rtol=2e-4, atol=2e-4)
     return rows, states
 
@@ -239,6 +235,6 @@ def training_programs():
 
 @pytest.fixture(scope="session")
 def assert_batch_equals_alone():
-    """`assert_batch_equals_alone(algo, configs, keys, fields=..., lanes=None) -> (rows, states alone)`: config i
-    inside the vmapped batch equals config i trained alone."""
+    """`assert_batch_equals_alone(algo, configs, keys) -> (rows, states alone)`: config i inside the vmapped batch
+    equals config i trained alone."""
     return _assert_batch_equals_alone
