@@ -34,6 +34,7 @@ _LAZY = {
     "AlwaysMeasured": "amjax.wrappers.active_measure",
     "MeasureParams": "amjax.wrappers.active_measure",
     "MeasureState": "amjax.wrappers.active_measure",
+    "MeasureSpec": "amjax.wrappers.spec",
     "EpisodeStats": "amjax.wrappers.episode_stats",
 }
 

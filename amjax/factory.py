@@ -2,20 +2,15 @@
 
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
-import jax.numpy as jnp
 from gymnax.environments.environment import Environment
 
-from amjax.envs.registry import make_env
 from amjax.validation import check_bool, check_real, check_whole_number
-from amjax.wrappers.active_measure import (
-    ActiveMeasure,
-    AlwaysMeasured,
-    MeasureParams,
-    check_measure_setup,
-)
-from amjax.wrappers.instruments import check_instrument_values, resolve_instruments
+from amjax.wrappers.active_measure import check_measure_setup
+from amjax.wrappers.instruments import check_instrument_values
+from amjax.wrappers.spec import MeasureSpec
 
 
 def make(
@@ -32,8 +27,14 @@ def make(
     instrument_costs: Any = None,
     instrument_noise: Any = None,
     cost_range: Any = None,
+    *,
+    spec: MeasureSpec | None = None,
 ) -> tuple[Environment, Any]:
     """Build `env_id` wrapped as an active-measure MDP; returns `(env, params)`.
+
+    The measurement arguments below are a shorthand for a `MeasureSpec` (`amjax.wrappers.spec`, where every option
+    is declared once); `make(env_id, spec=MeasureSpec(...))` takes one directly (an agent config is one too:
+    `make(config.env_id, spec=config)` builds the env that config trains on).
 
     Args:
       env_id: "CartPole-v0" (200 steps, the paper's), "CartPole-v1", "Acrobot-v1", "LunarLander-v3", any
@@ -67,7 +68,11 @@ def make(
         0) and the cost, scaled from [low, high] to [-1, 1] (0 when low = high), is appended, last, to the
         observation, for one agent conditioned on every cost of the range. To score such an agent at cost c, keep
         the scaling range and draw c: `params.replace(cost_low=c, cost_high=c)`. None: the fixed `cost`.
+      spec: the whole measurement setting as one `MeasureSpec` (checked by `MeasureSpec.check_measure`); the other
+        measurement arguments must then be left at their defaults.
     """
+    if spec is not None:
+        return _make_from_spec(env_id, spec, locals())
     check_bool("flag", flag)
     cost = check_real("cost", cost, low=0.0)
     options = {
@@ -81,29 +86,61 @@ def make(
         "cost_range": cost_range is not None,
     }
     check_measure_setup(vanilla, mode, noise_std, options)  # the agent configs' check too
-    if vanilla:
-        return wrap(env_id, vanilla=True)
     if budget is not None:  # extra_obs and reward_timing: the wrapper checks them
         budget = check_whole_number("budget", budget)
     noise_std = 0.0 if noise_std is None else check_real("noise_std", noise_std, low=0.0)
     if cost_range is not None:
         cost_range = check_cost_range(cost_range, cost)
-    wrapped, env_params = wrap(
-        env_id,
-        mode,
-        flag,
+    low, high = (0.0, 0.0) if cost_range is None else cost_range
+    spec = MeasureSpec(
+        mode=mode,
+        flag=flag,
+        vanilla=vanilla,
         extra_obs=extra_obs,
         budgeted=budget is not None,
         reward_timing=reward_timing,
         instruments=instruments,
         cost_conditioned=cost_range is not None,
+        cost=cost,
+        noise_std=noise_std,
+        budget=0.0 if budget is None else budget,
+        cost_low=low,
+        cost_high=high,
     )
-    k = len(wrapped.instruments)
-    prices = {
-        name: ([0.0] * k if k else None) if value is None else check_instrument_values(name, value, k, batched=True)
-        for name, value in (("instrument_costs", instrument_costs), ("instrument_noise", instrument_noise))
-    }
-    return wrapped, measure_params(env_params, cost, noise_std, budget, **prices, cost_range=cost_range)
+    env, env_params = spec.wrap_env(env_id)  # the wrapper checks extra_obs, reward_timing and the instruments
+    given = {"instrument_costs": instrument_costs, "instrument_noise": instrument_noise}
+    k = 0 if vanilla else len(env.instruments)
+    spec = spec.replace(
+        **{
+            name: check_instrument_values(name, value, k, batched=True)
+            for name, value in given.items()
+            if value is not None
+        }
+    )
+    return env, spec.measure_params(env, env_params)
+
+
+def _make_from_spec(env_id: str, spec: MeasureSpec, arguments: dict[str, Any]) -> tuple[Environment, Any]:
+    """`make(env_id, spec=spec)`: the spec checked and built, once no other measurement argument is given."""
+    if not isinstance(spec, MeasureSpec):
+        raise TypeError(f"spec: got {type(spec).__name__}; allowed: a MeasureSpec (or an agent config)")
+    defaults = {name: p.default for name, p in inspect.signature(make).parameters.items() if name != "env_id"}
+    given = [
+        name
+        for name, default in defaults.items()
+        if name != "spec" and not (arguments[name] is default or _equal(arguments[name], default))
+    ]
+    if given:
+        raise ValueError(
+            f"spec: given with {', '.join(given)}; allowed: the measurement setting either as a spec or as "
+            "arguments (set those fields in the spec instead)"
+        )
+    return spec.measure_spec().make(env_id)
+
+
+def _equal(value: Any, default: Any) -> bool:
+    """Whether an argument is its default (a plain value equal to it; an array counts as given)."""
+    return isinstance(value, bool | int | float | str | tuple) and value == default
 
 
 def check_cost_range(cost_range: Any, cost: Any) -> tuple[Any, Any]:
@@ -119,66 +156,3 @@ def check_cost_range(cost_range: Any, cost: Any) -> tuple[Any, Any]:
     if check_real("cost", cost, low=0.0).any():
         raise ValueError("cost: a cost-conditioned env draws each episode's cost from cost_range; allowed: 0")
     return low, high
-
-
-def wrap(
-    env_id: str,
-    mode: str = "last",
-    flag: bool = True,
-    vanilla: bool = False,
-    extra_obs: tuple[str, ...] = (),
-    budgeted: bool = False,
-    reward_timing: str = "immediate",
-    instruments: Any = (),
-    cost_conditioned: bool = False,
-) -> tuple[Environment, Any]:
-    """The wrapped environment and the *inner* env's params, unchecked (`make` checks its arguments first).
-
-    The trainers call this with a config's static fields and build the params from its traced cost and noise with
-    `measure_params`, so traced values go straight into the params."""
-    env, env_params = make_env(env_id)
-    if vanilla:
-        return AlwaysMeasured(env, env_params), env_params
-    wrapped = ActiveMeasure(
-        env,
-        mode,
-        flag,
-        env_params,
-        extra_obs,
-        budgeted,
-        reward_timing,
-        resolve_instruments(env_id, instruments),
-        cost_conditioned,
-    )
-    return wrapped, env_params
-
-
-def measure_params(
-    env_params: Any,
-    cost: Any,
-    noise_std: Any,
-    budget: Any = None,
-    instrument_costs: Any = None,
-    instrument_noise: Any = None,
-    cost_range: Any = None,
-) -> MeasureParams:
-    """`MeasureParams` around the inner env's params; `cost`, `noise_std`, `budget` (None: no budget) and the
-    instruments' prices and noise ([k]; None: no instruments) and the cost range ((low, high); None: a fixed cost)
-    may be traced (float32 arrays)."""
-
-    def optional(value: Any) -> Any:
-        return None if value is None else jnp.asarray(value, jnp.float32)
-
-    low, high = (None, None) if cost_range is None else map(optional, cost_range)
-    return MeasureParams(
-        env_params=env_params,
-        cost=jnp.asarray(cost, jnp.float32),
-        noise_std=jnp.asarray(noise_std, jnp.float32),
-        budget=optional(budget),
-        instrument_costs=optional(instrument_costs),
-        instrument_noise=optional(instrument_noise),
-        cost_low=low,  # the draw range; evaluating at another cost changes it ...
-        cost_high=high,
-        cost_scale_low=low,  # ... and keeps the training range the cost is scaled by
-        cost_scale_high=high,
-    )

@@ -16,11 +16,21 @@ import numpy as np
 from flax import struct
 
 from amjax.envs.registry import make_env
-from amjax.validation import check_bool, check_choice, check_positive_int, check_real, check_whole_number
-from amjax.wrappers.active_measure import REWARD_TIMINGS, check_extra_obs, check_measure_setup
-from amjax.wrappers.instruments import check_instruments, resolve_instruments
+from amjax.validation import check_positive_int, check_real, check_whole_number
+from amjax.wrappers.instruments import resolve_instruments
+from amjax.wrappers.spec import MEASURE_HEADS, MeasureSpec, is_traced, static
 
-MEASURE_HEADS = ("joint", "factored")
+__all__ = [
+    "MAX_EPISODES",
+    "MAX_STEPS",
+    "MAX_WIDTH",
+    "MEASURE_HEADS",
+    "AgentConfig",
+    "nearest_schedule",
+    "stack_configs",
+    "static",
+    "unstack_config",
+]
 _BOUNDS = {
     "positive": {"low": 0.0, "low_inclusive": False},
     "nonnegative": {"low": 0.0},
@@ -42,19 +52,12 @@ def nearest_schedule(total_timesteps: int, eval_every: int, unit: int) -> tuple[
     return max(every, round(total_timesteps / every) * every), every
 
 
-def static(default: Any) -> Any:
-    """A config field that sets a shape or a count: part of the compiled program, never vmapped."""
-    return struct.field(pytree_node=False, default=default)
-
-
 @struct.dataclass
-class AgentConfig:
-    """Fields every agent shares: the environment and the training / evaluation budget."""
+class AgentConfig(MeasureSpec):
+    """Fields every agent shares: the environment, the measurement setting (`MeasureSpec`'s fields: mode, flag,
+    vanilla, cost, budget, ..., inherited, not copied) and the training / evaluation budget."""
 
     env_id: str = static("CartPole-v0")
-    mode: str = static("last")  # what an unmeasured step shows: "last", "random" or "noisy"
-    flag: bool = static(True)  # append the fresh/stale flag to observations
-    vanilla: bool = static(False)  # the plain env: no measure action, no cost (the paper's baseline)
     total_timesteps: int = static(100_000)  # env steps per configuration (all parallel envs together)
     eval_every: int = static(10_000)  # env steps between greedy evaluations
     eval_episodes: int = static(10)  # test episodes per evaluation
@@ -63,23 +66,6 @@ class AgentConfig:
     # groups, `vmap` within one; 0: all at once). Speed only: a group's working set can stay in a core's cache.
     # Results agree with ungrouped training to float rounding (which a long run amplifies, as any change of batch).
     train_group: int = static(0)
-    # Options beyond the paper (amjax.make's arguments of the same names; see wrappers/active_measure.py).
-    extra_obs: tuple[str, ...] = static(())  # "since_measured" and/or "last_action", appended after the flag
-    budgeted: bool = static(False)  # enforce `budget` (and show the fraction left)
-    reward_timing: str = static("immediate")  # or "on_measure": raw rewards paid at the next measurement
-    # () (the paper's single switch), "default" (the env's split) or a tuple of observation-index tuples
-    instruments: Any = static(())
-    # "joint" (the paper's one output per (control, measure) pair) or "factored" (a control head and a measure head)
-    measure_head: str = static("joint")
-    # one agent for a range of costs: each episode's cost drawn from [cost_low, cost_high] and observed
-    cost_conditioned: bool = static(False)
-    cost: float = 0.0  # traced: charged per measurement (with instruments: per step with any reading)
-    noise_std: float = 0.0  # traced: std of the observation noise in mode "noisy" (> 0 there; 0 elsewhere)
-    budget: float = 0.0  # traced: paid measurements allowed per episode (with budgeted=True; a whole number)
-    instrument_costs: tuple[float, ...] = ()  # traced: the price of each instrument (() = zeros)
-    instrument_noise: tuple[float, ...] = ()  # traced: the std of each instrument's reading noise (() = zeros)
-    cost_low: float = 0.0  # traced: with cost_conditioned, the range episodes draw their cost from
-    cost_high: float = 0.0
 
     # The allowed range of each traced field of a subclass: "positive" (> 0), "nonnegative" (>= 0), "unit"
     # ([0, 1]), "probability" ((0, 1)) or "count" (whole numbers >= 0); every value must be finite.
@@ -141,48 +127,15 @@ class AgentConfig:
                 f"env_id: {self.env_id} has a {space} action space; {type(self).__name__} handles "
                 f"{' and '.join(self.ACTION_SPACES)} (for Box control use PPO: agent ppo or ppo-rnn)"
             )
-        check_bool("flag", self.flag)
-        check_bool("vanilla", self.vanilla)
-        check_extra_obs(self.extra_obs)
-        check_bool("budgeted", self.budgeted)
-        check_choice("reward_timing", self.reward_timing, REWARD_TIMINGS)
-        num_instruments = self.check_instruments(env, env_params)
-        check_choice("measure_head", self.measure_head, MEASURE_HEADS)
-        check_bool("cost_conditioned", self.cost_conditioned)
-        if self.measure_head == "factored" and (self.vanilla or space != "Discrete"):
-            raise ValueError(
-                "measure_head: 'factored' splits a Discrete control's (control, measure) pairs; "
-                + (
-                    "a vanilla run has no measure choice"
-                    if self.vanilla
-                    else f"{self.env_id}'s {space} control already has a measure entry of its own"
-                )
-                + "; allowed there: 'joint'"
-            )
-        bounds = {
-            "cost": "nonnegative",
-            "noise_std": "nonnegative",
-            "budget": "count",
-            "cost_low": "nonnegative",
-            "cost_high": "nonnegative",
-            **self.TRACED_BOUNDS,
-        }
-        if num_instruments:
-            bounds.update(instrument_costs="nonnegative", instrument_noise="nonnegative")
-        for name, kind in bounds.items():
+        self.check_measure(self.env_id, env, env_params)
+        for name, kind in self.TRACED_BOUNDS.items():
             value = getattr(self, name)
-            if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value)):
+            if is_traced(value):
                 continue  # under vmap/jit: the caller checked the concrete values
-            if isinstance(value, tuple) and not value:
-                continue  # instrument prices and noise left at zero
             if kind == "count":
                 check_whole_number(name, value)
             else:
                 check_real(name, value, **_BOUNDS[kind])
-        self.check_measure_setup()
-        self.check_cost_range()
-        if not self.budgeted and not isinstance(self.budget, jax.core.Tracer) and np.any(np.asarray(self.budget)):
-            raise ValueError("budget: set budgeted=True to enforce a measurement budget (budget is ignored without)")
         check_positive_int("total_timesteps", self.total_timesteps, maximum=MAX_STEPS)
         check_positive_int("eval_every", self.eval_every, maximum=MAX_STEPS)
         check_positive_int("eval_episodes", self.eval_episodes, maximum=MAX_EPISODES)
@@ -206,59 +159,6 @@ class AgentConfig:
                 f"total_timesteps={total} (the command line rounds them for you)"
             )
         return self
-
-    def check_measure_setup(self) -> None:
-        """mode, noise_std and vanilla as `amjax.make` checks them (`check_measure_setup`, one check for both; a
-        noise_std of 0, the default, is unset); a vanilla run takes none of the measurement options."""
-        cost_set = not isinstance(self.cost, jax.core.Tracer) and bool(np.any(np.asarray(self.cost)))
-        options = {
-            "cost": cost_set,
-            "extra_obs": bool(self.extra_obs),
-            "budgeted": self.budgeted,
-            "reward_timing": self.reward_timing != "immediate",
-            "instruments": self.instruments != (),
-            "instrument_costs": bool(self.instrument_costs),
-            "instrument_noise": bool(self.instrument_noise),
-            "cost_conditioned": self.cost_conditioned,
-        }
-        check_measure_setup(self.vanilla, self.mode, self.noise_std, options)
-
-    def check_cost_range(self) -> None:
-        """With cost_conditioned: cost_low <= cost_high and no fixed cost; without: the range left at zero."""
-        values = (self.cost, self.cost_low, self.cost_high)
-        if any(isinstance(v, jax.core.Tracer) for v in values):
-            return
-        cost, low, high = (np.asarray(v) for v in values)
-        if self.cost_conditioned:
-            if np.any(low > high):
-                raise ValueError(f"cost_low: got {low}, above cost_high {high}; allowed: cost_low <= cost_high")
-            if np.any(cost):
-                raise ValueError(
-                    "cost: a cost-conditioned run draws each episode's cost from [cost_low, cost_high]; "
-                    "allowed values: 0 (e.g. --cost 0 --set cost_conditioned=True --set cost_high=0.5)"
-                )
-        elif np.any(low) or np.any(high):
-            raise ValueError(
-                "cost_low, cost_high: set cost_conditioned=True to draw costs from a range (they are ignored without)"
-            )
-
-    def check_instruments(self, env: Any, env_params: Any) -> int:
-        """Check `instruments` and the lengths of their prices and noise; returns the number of instruments."""
-        instruments = resolve_instruments(self.env_id, self.instruments)
-        instruments = check_instruments(instruments, env.observation_space(env_params).shape[0])
-        for name in ("instrument_costs", "instrument_noise"):
-            value = getattr(self, name)
-            if not isinstance(value, tuple):
-                raise ValueError(
-                    f"{name}: got {value!r}; allowed values: a tuple of numbers >= 0, one per instrument, "
-                    "or () for zeros"
-                )
-            if value and len(value) != len(instruments):
-                raise ValueError(
-                    f"{name}: got {len(value)} values for {len(instruments)} instruments; allowed: one "
-                    "number >= 0 per instrument, or () for zeros" + ("" if instruments else " (set instruments first)")
-                )
-        return len(instruments)
 
     def check_fields(self) -> None:
         """Check the fields an agent adds (overridden by each config class; call `super().check_fields()`)."""

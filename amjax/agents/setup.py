@@ -11,35 +11,16 @@ from typing import Any
 from flax import linen as nn
 from flax import struct
 
-from amjax.factory import measure_params, wrap
 from amjax.wrappers.episode_stats import EpisodeStats
 
 
 def training_env(config: Any) -> tuple[Any, Any, int]:
     """The env a config trains and evaluates on (with episode statistics), its params (the config's cost and
-    noise, traced or not) and its episode step limit."""
-    env, env_params = wrap(
-        config.env_id,
-        config.mode,
-        config.flag,
-        config.vanilla,
-        config.extra_obs,
-        config.budgeted,
-        config.reward_timing,
-        config.instruments,
-        config.cost_conditioned,
-    )
+    noise, traced or not) and its episode step limit: the config's `MeasureSpec` fields, unchecked (the config's
+    `validate` checked them)."""
+    env, env_params = config.wrap_env(config.env_id)
     max_steps = int(env_params.max_steps_in_episode)
-    if not config.vanilla:
-        budget = config.budget if config.budgeted else None
-        k = len(env.instruments)
-        prices = {
-            name: (getattr(config, name) or (0.0,) * k) if k else None
-            for name in ("instrument_costs", "instrument_noise")
-        }
-        cost_range = (config.cost_low, config.cost_high) if config.cost_conditioned else None
-        env_params = measure_params(env_params, config.cost, config.noise_std, budget, **prices, cost_range=cost_range)
-    return EpisodeStats(env), env_params, max_steps
+    return EpisodeStats(env), config.measure_params(env, env_params), max_steps
 
 
 @struct.dataclass

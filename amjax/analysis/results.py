@@ -21,7 +21,7 @@ import pandas as pd
 
 from amjax.agents.registry import ALGORITHMS, algorithm
 from amjax.sweep import storage
-from amjax.sweep.grid import MEASURE_FIELDS
+from amjax.sweep.grid import MEASURE_FIELDS, is_swept
 
 SETTING = ["env", "agent", "vanilla", "cost"]
 # Columns the runner writes itself; any other column of results.parquet is a swept hyperparameter.
@@ -203,13 +203,8 @@ def _planned_configs(spec: dict[str, Any]) -> int | None:
 
 
 def _is_swept(name: str, value: Any, fields: dict[str, Any] | None) -> bool:
-    """Whether a stored hyperparameter value is a list of values (tuple-valued fields were stored as lists)."""
-    if not isinstance(value, list):
-        return False
-    if name == "instruments":  # one value: "default" or a list of index lists
-        return all(v == "default" or (isinstance(v, list) and all(isinstance(w, list) for w in v)) for v in value)
-    sequence_field = fields is not None and isinstance(fields[name].default, tuple)
-    return not sequence_field or all(isinstance(v, list) for v in value)
+    """Whether a stored hyperparameter value is a list of values (`amjax.sweep.grid.is_swept`)."""
+    return is_swept(name, value, None if fields is None else fields[name])
 
 
 def sweep_progress(data: SweepData) -> dict[str, Any]:

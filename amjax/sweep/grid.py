@@ -17,26 +17,15 @@ from amjax.agents.config import nearest_schedule
 from amjax.envs.registry import make_env
 from amjax.presets import ENV_PRESETS
 from amjax.validation import check_choice, check_positive_int, check_real
+from amjax.wrappers.spec import MeasureSpec
 
 # Fields that define the sweep's schedule and evaluation points: one value for the whole sweep.
 SCHEDULE_FIELDS = ("total_timesteps", "eval_every", "eval_episodes")
 # Fields the grid itself sets.
 GRID_FIELDS = ("env_id", "cost", "vanilla")
-# Fields of the active-measure wrapper: a vanilla run (the plain env) takes none, so it is not multiplied by them.
-MEASURE_FIELDS = (
-    "noise_std",
-    "extra_obs",
-    "budgeted",
-    "budget",
-    "reward_timing",
-    "instruments",
-    "instrument_costs",
-    "instrument_noise",
-    "measure_head",
-    "cost_conditioned",
-    "cost_low",
-    "cost_high",
-)
+# The measurement fields (`MeasureSpec`'s) a vanilla run (the plain env) does not take, so it is not multiplied by
+# them: all but the grid's own (cost, vanilla) and the view settings every run shares (mode, flag).
+MEASURE_FIELDS = tuple(name for name in MeasureSpec.measure_fields() if name not in (*GRID_FIELDS, "mode", "flag"))
 
 
 @dataclass(frozen=True)
@@ -86,10 +75,52 @@ class SweepSpec:
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> SweepSpec:
+        """The spec `to_json` wrote (a cluster worker's, or a folder's metadata). JSON keeps no tuples, so they are
+        restored by field: an `env_defaults` value is always one value, and a hyperparameter's list is a list of
+        values unless the field holds tuples and the list is one such tuple (`is_swept`)."""
         data = dict(data)
         for name in ("envs", "agents", "costs", "seeds"):
             data[name] = tuple(data[name])
+        fields = _fields_of(data["agents"])
+        hyperparams = {}
+        for key, value in data.get("hyperparams", {}).items():
+            name = split_hyperparam(key)[1]
+            swept = is_swept(name, value, fields.get(name))
+            hyperparams[key] = [_tuples(v) for v in value] if swept else _tuples(value)
+        data["hyperparams"] = hyperparams
+        if data.get("env_defaults") is not None:
+            data["env_defaults"] = {
+                env: {key: _tuples(value) for key, value in values.items()}
+                for env, values in data["env_defaults"].items()
+            }
         return cls(**data)
+
+
+def _tuples(value: Any) -> Any:
+    """JSON lists back to (nested) tuples."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
+def _fields_of(agents: Sequence[str]) -> dict[str, dataclasses.Field]:
+    """Config field name -> its dataclass field, over `agents` (the first agent that has it; unknown agents none)."""
+    fields: dict[str, dataclasses.Field] = {}
+    for agent in agents:
+        if agent in ALGORITHMS:
+            for name, f in ALGORITHMS[agent].config_type.__dataclass_fields__.items():
+                fields.setdefault(name, f)
+    return fields
+
+
+def is_swept(name: str, value: Any, field_: dataclasses.Field | None) -> bool:
+    """Whether a hyperparameter value read from JSON (where tuples became lists) is a list of values to sweep: a
+    list, unless its field holds tuples (`field_`'s default is one) and the list is one such value (a list of
+    scalars, or empty). `instruments` is one value when it is "default" or a list of index lists."""
+    if not isinstance(value, list):
+        return False
+    if name == "instruments":  # one value: "default" or a list of index lists
+        return all(v == "default" or (isinstance(v, list) and all(isinstance(w, list) for w in v)) for v in value)
+    sequence_field = field_ is not None and isinstance(field_.default, tuple)
+    return not sequence_field or (bool(value) and all(isinstance(v, list) for v in value))  # [] is ()
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Wrappers: the active-measure MDP, per-episode statistics, and (optional) Gymnasium bridges."""
+"""Wrappers: the active-measure MDP and its setting (`MeasureSpec`), per-episode statistics, and Gymnasium bridges."""
 
 from amjax.wrappers.active_measure import (
     MODES,
@@ -8,6 +8,7 @@ from amjax.wrappers.active_measure import (
     MeasureState,
 )
 from amjax.wrappers.episode_stats import EpisodeMetrics, EpisodeStats, EpisodeStatsState
+from amjax.wrappers.spec import MeasureSpec
 
 __all__ = [
     "MODES",
@@ -17,5 +18,6 @@ __all__ = [
     "EpisodeStatsState",
     "EpisodeMetrics",
     "MeasureParams",
+    "MeasureSpec",
     "MeasureState",
 ]

@@ -28,7 +28,8 @@ from gymnax.environments import spaces as gymnax_spaces
 from amjax.cores import TreeLayout, jit_one_kernel
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real, check_whole_number
 from amjax.wrappers.active_measure import REWARD_TIMINGS, UNBOUNDED, check_extra_obs, check_measure_setup
-from amjax.wrappers.instruments import check_instrument_values, check_instruments, feature_owner
+from amjax.wrappers.instruments import check_instrument_values, check_instruments, feature_owner, resolve_instruments
+from amjax.wrappers.spec import MeasureSpec
 
 __all__ = ["ActiveMeasureWrapper", "GymnasiumEnv", "gymnasium_space", "to_gymnasium"]
 
@@ -234,6 +235,39 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         self._last_obs: np.ndarray | None = None
         self._view_rng: np.random.Generator | None = None
         self._restart_counters()
+
+    @classmethod
+    def from_spec(cls, env: gymnasium.Env, spec: MeasureSpec) -> ActiveMeasureWrapper:
+        """The wrapper for a `MeasureSpec` (or an agent config's setting), e.g. to run a policy trained in JAX on
+        the Gymnasium original. `instruments="default"` takes the defaults of `env.spec.id`. Settings this wrapper
+        does not have are refused: `vanilla` (the plain env is `env` itself) and `cost_conditioned`; the
+        spec's values must be single numbers (not batched). `measure_head` is the agent's and changes no env."""
+        for name in ("vanilla", "cost_conditioned"):
+            if getattr(spec, name):
+                raise ValueError(
+                    f"{name}: ActiveMeasureWrapper has no {name} setting; allowed: {name}=False"
+                    + (" (the plain env is the Gymnasium env itself)" if name == "vanilla" else "")
+                )
+        instruments = spec.instruments
+        if instruments == "default":
+            instruments = resolve_instruments(env.spec.id if env.spec is not None else "", instruments)
+
+        def given(value: Any) -> Any:
+            return None if isinstance(value, tuple) and not value else value
+
+        return cls(
+            env,
+            cost=spec.cost,
+            mode=spec.mode,
+            flag=spec.flag,
+            noise_std=spec.noise_std,
+            extra_obs=spec.extra_obs,
+            budget=spec.budget if spec.budgeted else None,
+            reward_timing=spec.reward_timing,
+            instruments=instruments,
+            instrument_costs=given(spec.instrument_costs),
+            instrument_noise=given(spec.instrument_noise),
+        )
 
     def _restart_counters(self) -> None:
         """The options' counters at an episode's start (`_since` per instrument)."""
