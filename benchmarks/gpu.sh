@@ -1,23 +1,33 @@
 #!/usr/bin/env bash
-# The GPU figures of docs/guide/gpu.md in one go, written as one markdown file that names the device. Parts (about
-# 7 minutes together on one H200):
+# The GPU figures of docs/guide/gpu.md in one go, written as one markdown file that names the device (gpu.md) in the
+# output folder. Parts (about 8 minutes together on one H200):
 #   profile            PPO and Dueling DQN sweeps at 1,024 and 4,096 configurations, amjax against the plain
 #                      single-file reference compiled in the same process and timed in alternation, the 4,096 cases
 #                      profiled (benchmarks/gpu_profile.py: device time per kernel and source line; ~4.5 minutes);
-#   lander             the LunarLander-v3 port at 65,536 to 1,048,576 envs (benchmarks/lunar_lander_batch.py);
+#                      records in profile.jsonl;
+#   lander             the LunarLander-v3 port at 65,536 to 1,048,576 envs (benchmarks/lunar_lander_batch.py, each
+#                      size in its own process); records in lander.jsonl;
 #   lander-cpu-layout  the port at 65,536 envs with the CPU layout (--strategy cpu), every backend's before
-#                      amjax.strategy;
+#                      amjax.strategy; records in lander.jsonl too;
 # and, only when GPU_PARTS names them:
 #   ppo, dqn           the same sweeps, each implementation in a fresh process (python -m benchmarks.throughput, the
 #                      cases of issue 58's table; ~37 s a case, ~6 minutes both);
 #   demo               `python -m train demo`'s wall time (~1 minute);
 #   replicate          benchmarks/replicate_time.py's projection of `amjax replicate` for LunarLander-v3's PPO and
-#                      Dueling DQN (compiles dominate on a GPU; it did not finish in 170 s on an H200).
-# Each part has a time limit, so a slow part costs its own rows, not the rest.
+#                      Dueling DQN (compiles dominate on a GPU; it did not finish in 170 s on an H200), each env x agent
+#                      with its own time limit; records in replicate.jsonl.
+# Each part has a time limit, so a slow part costs its own rows, not the rest (the limits allow for the harness's
+# extra process starts: each script's device query, and lunar_lander_batch.py's process per size); gpu.md says
+# which part stopped early. The Python parts record through benchmarks/harness.py: their JSON lines (ppo.jsonl and
+# dqn.jsonl from the throughput benchmark) and the markdown rendered from them (FILE.md beside FILE.jsonl) are in
+# the output folder, and gpu.md includes the rendered tables; `python -m benchmarks.harness render
+# OUT_DIR/FILE.jsonl` renders one again. A rerun into the same folder appends its records to the same files, and
+# their tables then show every run (each names its date and commit).
 #
 #   bash benchmarks/gpu.sh [OUT_DIR]        # default: benchmarks/results/gpu_<date>
 #   GPU_QUICK=1 bash benchmarks/gpu.sh /tmp/gpu-smoke   # tiny sizes: checks the script on a CPU in ~5 minutes
 #   GPU_PARTS="ppo dqn demo" bash benchmarks/gpu.sh     # the parts named only
+#   GPU_LIMIT_SCALE=3 GPU_QUICK=1 bash benchmarks/gpu.sh /tmp/gpu-smoke   # every time limit x3 (a busy CPU)
 #
 # On a machine that cannot reach the package index (jax, flax, optax, chex, pandas and pyarrow there, no gymnax),
 # put the wheels of gymnax 1.0.1, gymnasium 1.3.0 and farama-notifications in .whl/ at the repository's root
@@ -42,79 +52,99 @@ export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 if [ -n "${GPU_QUICK:-}" ]; then
     sizes=4,8; ppo_steps=4:5120,8:5120; dqn_steps=4:2500,8:2500; big=4; small=8; long=5120
     lander="--envs 256 512 --steps 5 --burn-in 5"; lander_cpu="--envs 256 --steps 5 --burn-in 5"
-    replicate="--env CartPole-v0 --agent ppo --seeds 2 --probe-steps 1024"
+    replicate="--env CartPole-v0 --agent ppo --seeds 2 --probe-steps 1024"; replicate_cases=1
 else
     sizes=1024,4096; ppo_steps=1024:51200,4096:5120; dqn_steps=1024:51200,4096:2500; big=1024; small=4096; long=51200
     lander="--envs 65536 262144 1048576 --steps 25 --burn-in 100"; lander_cpu="--envs 65536 --steps 10 --burn-in 10"
-    replicate="--env LunarLander-v3 --agent ppo dqn"
+    replicate="--env LunarLander-v3 --agent ppo dqn"; replicate_cases=2
 fi
+scale=${GPU_LIMIT_SCALE:-1}
+replicate_limit=$((240 * scale))
 
 device=$("$python" -c "import jax; d = jax.devices()[0]; print(f'{d.device_kind} ({jax.default_backend()}), jax {jax.__version__}')")
 {
     echo "# GPU figures: $device"
     echo
     echo "Taken $(date -u +%Y-%m-%dT%H:%MZ) at commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown) by \`bash benchmarks/gpu.sh\`; one run each."
+    echo "The tables are rendered from the records beside this file (*.jsonl); each says when, where and how."
     command -v nvidia-smi >/dev/null && echo && nvidia-smi -L | sed 's/ (UUID.*//; s/^/    /'
 } >"$out/gpu.md"
 
 parts=${GPU_PARTS:-profile lander lander-cpu-layout}
-part() {  # part TITLE SECONDS COMMAND...: run COMMAND with a time limit, its output in $out/TITLE.log
-    local title=$1 limit=$2
+part() {  # part TITLE SECONDS COMMAND...: COMMAND with a time limit (x GPU_LIMIT_SCALE), its output in $out/TITLE.log
+    local title=$1 limit=$(($2 * scale))
     shift 2
     case " $parts " in *" $title "*) ;; *) return 0 ;; esac
+    rm -f "$out/$title.stopped"
     echo "== $title (at most ${limit}s)"
     local start=$SECONDS
     timeout "$limit" "$@" 2>&1 | tee "$out/$title.log"
     local status=${PIPESTATUS[0]}
     echo "== $title: exit $status after $((SECONDS - start))s"
+    [ "$status" = 0 ] || echo "exit $status after $((SECONDS - start)) s of at most ${limit} s" >"$out/$title.stopped"
     return 0
 }
 
 profile() {  # the four cases, one process each; the long runs timed only
-    local p=("$python" benchmarks/gpu_profile.py --out "$out")
+    local p=("$python" benchmarks/gpu_profile.py --out "$out/profile.jsonl")
     "${p[@]}" --agent ppo --configs "$small" --steps 5120 && "${p[@]}" --agent dqn --configs "$small" --steps 2500 &&
         "${p[@]}" --agent ppo --configs "$big" --steps "$long" --no-profile &&
         "${p[@]}" --agent dqn --configs "$big" --steps "$long" --no-profile --rounds 1
 }
 export -f profile
 export out python big small long
-part profile 330 bash -c profile
+part profile 360 bash -c profile
 throughput=("$python" -m benchmarks.throughput --impls amjax,reference --no-sb3 --overhead "" --sizes "$sizes")
-part ppo 170 "${throughput[@]}" --agents ppo --steps $ppo_steps --markdown "$out/ppo.md" --json "$out/ppo.json"
-part dqn 180 "${throughput[@]}" --agents dqn --steps $dqn_steps --markdown "$out/dqn.md" --json "$out/dqn.json"
-part lander 110 "$python" benchmarks/lunar_lander_batch.py $lander --json "$out/lander.jsonl"
-part lander-cpu-layout 60 "$python" benchmarks/lunar_lander_batch.py $lander_cpu --strategy cpu \
-    --json "$out/lander.jsonl"
+part ppo 170 "${throughput[@]}" --agents ppo --steps $ppo_steps --out "$out/ppo.jsonl" --json "$out/ppo.json"
+part dqn 180 "${throughput[@]}" --agents dqn --steps $dqn_steps --out "$out/dqn.jsonl" --json "$out/dqn.json"
+part lander 150 "$python" benchmarks/lunar_lander_batch.py $lander --out "$out/lander.jsonl"
+part lander-cpu-layout 90 "$python" benchmarks/lunar_lander_batch.py $lander_cpu --strategy cpu \
+    --out "$out/lander.jsonl"
 demo_dir=$(mktemp -d)
 start=$SECONDS
-touch "$out/lander.log" "$out/lander-cpu-layout.log" "$out/demo.log" "$out/replicate.log"
 part demo 90 "$python" -m train demo --out "$demo_dir/demo" --no-progress
 demo_s=$((SECONDS - start))
-part replicate 240 "$python" benchmarks/replicate_time.py $replicate
+# Each env x agent its share of the part's limit, so that a slow one is recorded as timed out and the next still runs.
+part replicate 240 "$python" benchmarks/replicate_time.py $replicate --out "$out/replicate.jsonl" \
+    --timeout $(((replicate_limit - 20) / replicate_cases))
+
+stopped() {  # stopped PART...: a line for each PART that did not finish (its time limit: exit 124)
+    for p in "$@"; do
+        [ -e "$out/$p.stopped" ] && echo && echo "The $p part stopped early ($(cat "$out/$p.stopped")); see $p.log."
+    done
+    return 0
+}
+
+rendered() {  # rendered HEADING FILE.md PART...: under HEADING, FILE (its headings two levels down) if one of PARTs ran
+    local heading=$1 file=$2 ran=""
+    shift 2
+    for p in "$@"; do [ -e "$out/$p.log" ] && ran=1; done
+    [ -n "$ran" ] || return 0
+    echo
+    echo "## $heading"
+    echo
+    if [ -s "$file" ]; then sed 's/^#/###/' "$file"; else echo "No table: see $(printf '%s.log ' "$@")"; fi
+    stopped "$@"
+}
 
 {
-    echo
-    echo "## Sweeps: amjax against the plain reference"
-    for case in ppo_$small dqn_$small ppo_$big dqn_$big; do
-        [ -s "$out/profile_$case.md" ] || continue  # the profile part not run
-        echo
-        echo "In one process, timed in alternation (benchmarks/gpu_profile.py; profile_$case.md):"
-        echo
-        grep -h '^# \|^## ' "$out/profile_$case.md" | sed 's/^#* //; s/^/    /'
-    done
+    rendered "Sweeps: amjax against the plain reference, in one process (benchmarks/gpu_profile.py)" \
+        "$out/profile.md" profile
     for agent in ppo dqn; do
         [ -e "$out/$agent.log" ] || continue  # a part not run
         echo
-        if [ -s "$out/$agent.md" ]; then sed -n '/^|/p' "$out/$agent.md"; else echo "$agent: no table (see $agent.log)"; fi
+        echo "## Sweeps: $agent, each implementation in a fresh process (benchmarks/throughput; notes in $agent.md)"
+        echo
+        if [ -s "$out/$agent.md" ]; then
+            sed -n '/^- Run:/p; /^|/p' "$out/$agent.md"
+        else
+            echo "$agent: no table (see $agent.log)"
+        fi
+        stopped "$agent"
     done
-    if [ -s "$out/lander.log" ] || [ -s "$out/lander-cpu-layout.log" ]; then
-        echo
-        echo "## LunarLander-v3, random actions"
-        echo
-        grep -h '^|' "$out/lander.log" "$out/lander-cpu-layout.log" | head -2
-        grep -h '^| [0-9]' "$out/lander.log" "$out/lander-cpu-layout.log"
-    fi
-    if [ -s "$out/demo.log" ]; then
+    rendered "LunarLander-v3, random actions (benchmarks/lunar_lander_batch.py)" "$out/lander.md" \
+        lander lander-cpu-layout
+    if [ -e "$out/demo.log" ]; then
         echo
         echo "## amjax demo"
         echo
@@ -124,13 +154,6 @@ part replicate 240 "$python" benchmarks/replicate_time.py $replicate
             echo "\`python -m train demo\` did not finish (see demo.log)."
         fi
     fi
-    if [ -s "$out/replicate.log" ]; then
-        echo
-        echo "## amjax replicate, projected (benchmarks/replicate_time.py $replicate)"
-        echo
-        echo '```'
-        cat "$out/replicate.log"
-        echo '```'
-    fi
+    rendered "amjax replicate, projected (benchmarks/replicate_time.py $replicate)" "$out/replicate.md" replicate
 } >>"$out/gpu.md"
 cat "$out/gpu.md"

@@ -1,11 +1,16 @@
 """Where a sweep's time goes on an accelerator: amjax's sweep programs and the plain reference compiled in one
 process, timed in alternation, then each profiled for one run; device time is summed per HLO op and per source line.
 
-    python benchmarks/gpu_profile.py --agent ppo --configs 1024 --steps 51200 --out DIR
+    python benchmarks/gpu_profile.py --agent ppo --configs 1024 --steps 51200  # benchmarks/results/, .jsonl and .md
+    python benchmarks/gpu_profile.py --agent dqn --configs 4 --steps 2500 --rounds 1 --out /tmp/p.jsonl  # a smoke run
 
-Writes DIR/profile_<agent>_<configs>.md (the wall times, kernel counts, device busy time, and the ops and source
-lines that take the most device time in each implementation) and the same as JSON. On a CPU it runs too (the
-figures are then the CPU's thunks), which is how the script is checked before a GPU session.
+Both implementations are compiled and timed in this one process on purpose (the same device state, rounds
+alternating, so that a slower or busier device moves both), so this script runs no child processes: it uses
+`benchmarks.harness` for its records and markdown only. Each run appends to `--out` (default:
+benchmarks/results/gpu_profile_<date>_<machine>.jsonl) a "run" line naming the machine and one "case" line per
+implementation (the timed rounds, env-steps/s, kernel count, device busy time, and the ops, source lines and
+kernels that take the most device time), and renders the markdown beside it. On a CPU it runs too (the figures are
+then the CPU's thunks), which is how the script is checked before a GPU session.
 """
 
 from __future__ import annotations
@@ -22,10 +27,12 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file: the repository importable, for `benchmarks.harness`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import jax  # noqa: E402
 
+from benchmarks import harness  # noqa: E402
 from benchmarks.throughput import runners  # noqa: E402
 from benchmarks.throughput.cases import _default_buffer, _round_steps, _steps_per_update  # noqa: E402
 from benchmarks.throughput.timing import interleaved  # noqa: E402
@@ -130,12 +137,6 @@ def summarise(events: list[dict[str, Any]], sources: dict[str, str], top: int) -
     }
 
 
-def _kernel_figures(summary: dict[str, Any]) -> str:
-    if "kernels" not in summary:
-        return ""
-    return f"; {summary['kernels']} kernels; busy {summary['busy_ms']:.0f} ms of a {summary['span_ms']:.0f} ms span"
-
-
 def build(case: dict[str, Any]) -> dict[str, Any]:
     """impl -> (run, optimised HLO texts) for amjax and the reference, compiled as the throughput benchmark does."""
     programs = runners._compile_amjax({**case, "impl": "amjax"})
@@ -146,14 +147,81 @@ def build(case: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def main(argv: list[str] | None = None) -> None:
+def _top_table(rows: list[dict[str, Any]], title: str) -> str:
+    """One of `summarise`'s rankings as a markdown table."""
+    return harness.markdown_table(
+        rows,
+        [
+            (title, lambda t: t["name"]),
+            ("kernels", lambda t: t["count"]),
+            ("ms", lambda t: f"{t['ms']:.1f}"),
+            ("share", lambda t: f"{t['share']:.1%}"),
+        ],
+    )
+
+
+def render(runs: list[dict[str, Any]]) -> str:
+    """The markdown of a results file: per run, the two implementations' timings side by side (speed as the
+    reference's best time over each one's), then, for a profiled run, the source lines, HLO ops and kernels that take
+    the most device time in each."""
+    parts = []
+    for run in runs:
+        settings, machine = run["settings"], run["machine"]
+        case, results = settings["case"], [r for r in run["cases"] if r["status"] == "ok"]
+        base = next((r for r in results if r["impl"] == "reference"), None)
+
+        def ratio(r: dict[str, Any], base: dict[str, Any] | None = base) -> str:
+            return f"{base['best_s'] / r['best_s']:.2f}x" if base else ""
+
+        text = (
+            f"# {case['agent']} {case['configs']} x {case['steps']} on {machine['device']} ({machine['backend']})\n\n"
+            "amjax's sweep programs and the plain reference compiled in one process and timed in alternation, "
+            f"{settings['rounds']} round(s) after an untimed run of each, the best kept"
+            + (
+                "; then each profiled for one run (device time per source line, HLO op and kernel)"
+                if settings["profile"]
+                else ""
+            )
+            + f". {harness.describe(run)}\n\n"
+            + harness.markdown_table(
+                results,
+                [
+                    ("implementation", lambda r: r["impl"]),
+                    ("best (s)", lambda r: f"{r['best_s']:.3f}"),
+                    ("rounds (s)", lambda r: ", ".join(f"{w:.3f}" for w in r["rounds_s"])),
+                    ("M env-steps/s", lambda r: f"{r['env_steps_per_s'] / 1e6:.2f}"),
+                    ("vs reference", ratio),
+                    ("kernels", lambda r: r.get("kernels")),
+                    ("device busy (ms)", lambda r: f"{r['busy_ms']:.0f}" if "busy_ms" in r else ""),
+                    ("span (ms)", lambda r: f"{r['span_ms']:.0f}" if "span_ms" in r else ""),
+                ],
+            )
+        )
+        for r in results if settings["profile"] else []:
+            text += f"\n## {r['impl']}: where the device time goes\n\n" + "\n".join(
+                _top_table(r.get(key, []), title)
+                for title, key in (
+                    ("source (op)", "top_sources"),
+                    ("HLO op", "top_ops"),
+                    ("kernel in op: source", "top_kernels"),
+                )
+            )
+        parts.append(text + "".join(f"\n{r['impl']}: {r['status']}\n" for r in run["cases"] if r["status"] != "ok"))
+    return "\n".join(parts)
+
+
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--agent", choices=("ppo", "dqn"), default="ppo")
     parser.add_argument("--configs", type=int, default=1024)
     parser.add_argument("--steps", type=int, default=51_200)
     parser.add_argument("--rounds", type=int, default=3, help="timed runs of each implementation, alternating")
     parser.add_argument("--top", type=int, default=25, help="ops and source lines listed per implementation")
-    parser.add_argument("--out", default="/tmp/gpu_profile")
+    parser.add_argument(
+        "--out",
+        help="results file to append to (default: benchmarks/results/gpu_profile_<date>_<machine>.jsonl; the "
+        "markdown is written beside it)",
+    )
     parser.add_argument("--no-profile", dest="profile", action="store_false", help="time only, no trace")
     args = parser.parse_args(argv)
 
@@ -172,8 +240,8 @@ def main(argv: list[str] | None = None) -> None:
     case["steps"] = _round_steps(args.steps, case["evals"] * _steps_per_update(args.agent))
     if args.agent == "dqn":
         case["buffer"] = _default_buffer(case["steps"], _steps_per_update("dqn"))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    # Before this process starts JAX: the recorder asks a child process for the device, which it must not find held.
+    recorder = harness.Recorder("gpu_profile", {**vars(args), "case": case}, args.out)
     device = jax.devices()[0]
     print(f"{device.device_kind} ({jax.default_backend()}), {args.agent} {args.configs} x {case['steps']}", flush=True)
 
@@ -182,48 +250,33 @@ def main(argv: list[str] | None = None) -> None:
     print(f"compiled both in {time.perf_counter() - start:.1f} s", flush=True)
     walls = interleaved({impl: run for impl, (run, _) in built.items()}, args.rounds)
     env_steps = case["configs"] * case["steps"]
-    result: dict[str, Any] = {"device": f"{device.device_kind} ({jax.default_backend()})", "case": case, "impls": {}}
     for impl, (run, texts) in built.items():
-        if not args.profile:
-            wall = min(walls[impl])
-            result["impls"][impl] = {"wall_s": walls[impl], "env_steps_per_s": env_steps / wall, "top_sources": []}
-            print(f"{impl}: {wall:.3f} s ({env_steps / wall / 1e6:.2f} M env-steps/s)", flush=True)
-            continue
-        trace_dir = Path(tempfile.mkdtemp(prefix=f"trace_{args.agent}_{args.configs}_{impl}_"))
-        with jax.profiler.trace(str(trace_dir), create_perfetto_trace=True):
-            run()
-        sources: dict[str, str] = {}
-        for text in texts:
-            sources.update(hlo_sources(text))
-        summary = summarise(device_events(trace_dir), sources, args.top)
-        shutil.rmtree(trace_dir)  # hundreds of MB for a long run; the summary is what is kept
-        summary["wall_s"] = walls[impl]
-        summary["env_steps_per_s"] = env_steps / min(walls[impl])
-        result["impls"][impl] = summary
-        print(
-            f"{impl}: {min(walls[impl]):.3f} s ({summary['env_steps_per_s'] / 1e6:.2f} M env-steps/s), "
-            f"{summary['kernels']} kernels, device busy {summary['busy_ms']:.0f} ms of {summary['span_ms']:.0f}",
-            flush=True,
-        )
-    name = f"profile_{args.agent}_{args.configs}"
-    (out / f"{name}.json").write_text(json.dumps(result, indent=1))
-    lines = [f"# {args.agent} {args.configs} x {case['steps']} on {result['device']}", ""]
-    for impl, s in result["impls"].items():
-        lines += [
-            f"## {impl}: best {min(s['wall_s']):.3f} s of {', '.join(f'{w:.3f}' for w in s['wall_s'])}; "
-            f"{s['env_steps_per_s'] / 1e6:.2f} M env-steps/s{_kernel_figures(s)}",
-            "",
-            "| source (op) | kernels | ms | share |",
-            "|---|---|---|---|",
-        ]
-        lines += [f"| {r['name']} | {r['count']} | {r['ms']:.1f} | {r['share']:.1%} |" for r in s["top_sources"]]
-        for title, key in (("HLO op", "top_ops"), ("kernel in op: source", "top_kernels")):
-            lines += ["", f"| {title} | kernels | ms | share |", "|---|---|---|---|"]
-            lines += [f"| {r['name']} | {r['count']} | {r['ms']:.1f} | {r['share']:.1%} |" for r in s.get(key, [])]
-        lines.append("")
-    (out / f"{name}.md").write_text("\n".join(lines))
-    print((out / f"{name}.md").read_text())
+        record: dict[str, Any] = {
+            "impl": impl,
+            "agent": args.agent,
+            "configs": args.configs,
+            "steps": case["steps"],
+            "status": "ok",
+            "rounds_s": walls[impl],
+            "best_s": min(walls[impl]),
+            "env_steps_per_s": env_steps / min(walls[impl]),
+        }
+        if args.profile:
+            trace_dir = Path(tempfile.mkdtemp(prefix=f"trace_{args.agent}_{args.configs}_{impl}_"))
+            with jax.profiler.trace(str(trace_dir), create_perfetto_trace=True):
+                run()
+            sources: dict[str, str] = {}
+            for text in texts:
+                sources.update(hlo_sources(text))
+            record.update(summarise(device_events(trace_dir), sources, args.top))
+            shutil.rmtree(trace_dir)  # hundreds of MB for a long run; the summary is what is kept
+        recorder.case(record)
+    recorder.end()
+    markdown = harness.write_markdown(recorder.path, render)
+    print(render([done for done in harness.read_runs(recorder.path) if done["run"] == recorder.run]))
+    print(f"written to {recorder.path} and {markdown}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

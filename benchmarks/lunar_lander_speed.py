@@ -2,6 +2,8 @@
 
     python benchmarks/lunar_lander_speed.py                       # 1, 64, 1,024, 4,096, 16,384 envs
     python benchmarks/lunar_lander_speed.py --envs 1 1024 --steps-per-run 50000
+    python benchmarks/lunar_lander_speed.py --solvers sweeps --envs 64 --heuristic-envs --steps-per-run 6400 \
+        --burn-in 100 --gymnasium-steps 1000 --single-env-steps 100 --step-compiles 1 --out /tmp/ll.jsonl  # a smoke run
 
 Random actions, auto-reset included in both. Gymnasium: one env in a Python loop (its C++ Box2D on one core,
 episodes cut at 1000 steps as LunarLander-v3's TimeLimit does). The port: `env.step` vmapped over the envs inside
@@ -18,42 +20,43 @@ only free fall, which ran 7x faster at 4,096 envs. Three solver settings are tim
 Box2D's velocity sweeps in every env (the default env), ``jump_sweeps=True`` and ``exact_free_flight=True``.
 Also timed: 1,024 envs driven by Gymnasium's heuristic controller (`--heuristic-envs`: landers that touch down and
 rest, legs on the ground on about 29% of env-steps, the costly contact path), and the compile of one vmapped
-`env.step` at 1,024 envs. Prints a markdown table (env-steps/s, compile time, memory) and writes it to
-benchmarks/results/lunar_lander_speed_<date>.md.
+`env.step` at 1,024 envs (`--step-compiles` fresh compiles, one after the other in one process).
+
+Each case (Gymnasium's loop; per solver, each single-env path, the step compiles, each batch) runs in a child process
+of its own, one after the other (`benchmarks.harness`: the child's peak resident memory is the case's own, and one
+case's compiled programs cannot slow the next); the records go to
+benchmarks/results/lunar_lander_speed_<date>_<machine>.jsonl (or `--out`) and the markdown table (env-steps/s,
+compile time, memory) is rendered beside it.
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime
 import itertools
+import json
 import os
-import platform
-import resource
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-import jax
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec
 
-import amjax
+if not __package__:  # run as a file: the repository importable, for `benchmarks.harness`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks import harness  # noqa: E402
 
-amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
+if TYPE_CHECKING:
+    from amjax.envs.lunar_lander import LunarLander
 
-from amjax.cores import REDUCTIONS_IN_XLA, TreeLayout, jit_one_kernel  # noqa: E402
-from amjax.envs.lunar_lander import LunarLander  # noqa: E402
-from amjax.envs.lunar_lander.env import heuristic_action  # noqa: E402
-from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander  # noqa: E402
-from amjax.wrappers.gymnasium import to_gymnasium  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the benchmarks are not installed
-from benchmarks.throughput.report import save_table  # noqa: E402
+# JAX and the port are imported in the children only (`run_case` calls `amjax.use_all_cores()` first): the parent
+# must not start JAX (nor hold an accelerator) while its children run.
 
 
 def gymnasium_rate(n_steps: int, seed: int = 0) -> float:
     """Env-steps/s of Gymnasium's LunarLander-v3, random actions, reset on termination or 1000 steps."""
+    from amjax.envs.lunar_lander.reference import load_gymnasium_lunar_lander
+
     env = load_gymnasium_lunar_lander().LunarLander()
     env.action_space.seed(seed)
     env.reset(seed=seed)
@@ -70,6 +73,10 @@ def gymnasium_rate(n_steps: int, seed: int = 0) -> float:
 def port_rollout(env: LunarLander, n_steps: int, policy: str = "random"):
     """(state, keys) -> state: `n_steps` vmapped steps of every env in `state`, with random actions or Gymnasium's
     heuristic controller (`policy="heuristic"`: landings, legs on the ground on about 29% of env-steps)."""
+    import jax
+
+    from amjax.envs.lunar_lander.env import heuristic_action
+
     params = env.default_params
 
     def rollout(state, key):
@@ -97,9 +104,12 @@ def port_rate(
     burn_in: int,
     policy: str = "random",
     compiler_options: dict[str, str] | None = None,
-) -> dict[str, float]:
+) -> dict[str, Any]:
     """Env-steps/s, compile seconds and program memory of `n_envs` envs split over `devices`, timed over
     `n_steps` steps after at least `burn_in` untimed ones."""
+    import jax
+    from jax.sharding import Mesh, PartitionSpec
+
     params = env.default_params
     keys = jax.random.split(jax.random.key(0), n_envs)
     _, state = jax.jit(jax.vmap(env.reset, (0, None)))(keys, params)
@@ -126,20 +136,18 @@ def port_rate(
     jax.block_until_ready(compiled(state, step_keys))
     seconds = time.perf_counter() - start
     return {
-        "envs": n_envs,
-        "policy": policy,
-        "options": bool(compiler_options),
         "devices": used,
-        "rate": n_envs * n_steps / seconds,
-        "compile_s": compile_s,
-        "program_mib": program_bytes / 2**20,
-        "rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "rate": round(n_envs * n_steps / seconds),
+        "compile_s": round(compile_s, 2),
+        "program_mib": round(program_bytes / 2**20, 2),
     }
 
 
 def step_compile_seconds(env: LunarLander, n_envs: int) -> float:
     """Seconds from a fresh `jax.jit(jax.vmap(env.step))` to its compiled program (trace, lowering, XLA compile):
     the first call's cost."""
+    import jax
+
     params = env.default_params
     keys = jax.random.split(jax.random.key(0), n_envs)
     _, state = jax.jit(jax.vmap(env.reset, (0, None)))(keys, params)
@@ -162,6 +170,11 @@ def single_env_rate(env: LunarLander, n_steps: int, path: str) -> float:
 
     "jit", "one_kernel" and "packed": a jitted step that splits the carried key and steps (auto-reset inside), the
     results left on the device; "bridge": `GymnasiumEnv.step`, reset after each episode."""
+    import jax
+
+    from amjax.cores import TreeLayout, jit_one_kernel
+    from amjax.wrappers.gymnasium import to_gymnasium
+
     params = env.default_params
     actions = np.random.default_rng(0).integers(0, 4, n_steps).astype(np.int32)
     if path == "bridge":
@@ -213,7 +226,116 @@ def single_env_rate(env: LunarLander, n_steps: int, path: str) -> float:
 SOLVERS = {"sweeps": "Box2D's sweeps", "jump_sweeps": "jump_sweeps", "exact_free_flight": "exact_free_flight"}
 
 
-def main() -> None:
+def run_case(case: dict[str, Any]) -> dict[str, Any]:
+    """One case in this (child) process: the measurements `render` shows."""
+    import amjax
+
+    amjax.use_all_cores()  # one CPU device per core, before JAX starts
+    import jax
+
+    from amjax.cores import REDUCTIONS_IN_XLA
+    from amjax.envs.lunar_lander import LunarLander
+
+    result = {
+        "cpu_devices": len(jax.devices()),
+        "xla_options": "xla_cpu_small_while_loop" in os.environ.get("XLA_FLAGS", ""),
+    }
+    if case["case"] == "gymnasium":
+        return {**result, "rate": round(gymnasium_rate(case["steps"]))}
+    solver = case["solver"]
+    env = LunarLander(exact_free_flight=solver == "exact_free_flight", jump_sweeps=solver == "jump_sweeps")
+    if case["case"] == "single":
+        return {**result, "rate": round(single_env_rate(env, case["steps"], case["path"]))}
+    if case["case"] == "step_compile":  # fresh compiles one after the other in one process, on purpose
+        return {
+            **result,
+            "seconds": [round(step_compile_seconds(env, case["envs"]), 2) for _ in range(case["repeats"])],
+        }
+    options = REDUCTIONS_IN_XLA if case["reductions_in_xla"] else None
+    return {
+        **result,
+        **port_rate(env, case["envs"], case["steps"], jax.devices(), case["burn_in"], case["policy"], options),
+    }
+
+
+def render(runs: list[dict[str, Any]]) -> str:
+    """The markdown of a results file: one table per run, env-steps/s against Gymnasium's loop of the same run."""
+    parts = []
+    for run in runs:
+        settings, results = run["settings"], [r for r in run["cases"] if r["status"] == "ok"]
+        gym = next((r["rate"] for r in results if r["case"] == "gymnasium"), None)
+        jaxed = next((r for r in results if r["case"] != "gymnasium"), results[0] if results else {})
+
+        def ratio(rate: float, digits: int, gym: float | None = gym) -> str:
+            return f"{rate / gym:.{digits}f}x" if gym else ""
+
+        rows = []
+        for r in results:
+            row = {"envs": 1, "devices": 1, "rate": r.get("rate"), "compile": "-", "program": "-"}
+            if r["case"] == "gymnasium":
+                row.update(system="Gymnasium LunarLander-v3 (C++ Box2D), Python loop", devices="1 core", vs="1.0x")
+            elif r["case"] == "single":
+                row.update(
+                    system=f"port ({SOLVERS[r['solver']]}), one env's step called from Python, "
+                    f"{SINGLE_ENV_PATHS[r['path']]}",
+                    vs=ratio(r["rate"], 2),
+                )
+            elif r["case"] == "port":
+                actions = "" if r["policy"] == "random" else ", Gymnasium's heuristic controller"
+                actions += ", compiled with `amjax.cores.REDUCTIONS_IN_XLA`" if r["reductions_in_xla"] else ""
+                row.update(
+                    system=f"port ({SOLVERS[r['solver']]}), vmapped `env.step` in `lax.scan`{actions}",
+                    envs=r["envs"],
+                    devices=r["devices"],
+                    vs=ratio(r["rate"], 1),
+                    compile=f"{r['compile_s']:.1f}",
+                    program=f"{r['program_mib']:.1f}",
+                )
+            else:
+                continue
+            rows.append({**row, "rss": r["peak_rss_mib"]})
+        options = jaxed.get("xla_options")
+        compiles = [r for r in results if r["case"] == "step_compile" and r["seconds"]]
+        parts.append(
+            f"# LunarLander-v3 speed, {run['date'][:10]}\n\n"
+            f"{jaxed.get('cpu_devices', '?')} JAX CPU devices (other jobs on the machine slow both systems). The "
+            f"port's timed runs start after {settings['burn_in']} untimed steps (envs at every phase of their "
+            "episodes). amjax's XLA CPU options (amjax.cores.xla_cpu_options): "
+            f"{'?' if options is None else 'on' if options else 'off (XLA defaults)'}. Each case in its own process, "
+            f"one after the other (peak RSS: that process's). {harness.describe(run)}\n\n"
+            + harness.markdown_table(
+                rows,
+                [
+                    ("system", lambda r: r["system"]),
+                    ("envs", lambda r: r["envs"]),
+                    ("devices", lambda r: r["devices"]),
+                    ("env-steps/s", lambda r: r["rate"]),
+                    ("vs Gymnasium", lambda r: r["vs"]),
+                    ("compile (s)", lambda r: r["compile"]),
+                    ("program memory (MiB)", lambda r: r["program"]),
+                    ("peak RSS (MiB)", lambda r: r["rss"]),
+                ],
+            )
+            + (
+                "\nCompile of one vmapped `env.step` at 1,024 envs (`jax.jit(jax.vmap(env.step))` traced, lowered "
+                "and compiled, fresh each time, one after the other in one process; the compile column above is the "
+                "whole scanned rollout under `shard_map`):\n"
+                + "".join(
+                    f"- {SOLVERS[r['solver']]}: {', '.join(f'{t:.1f}' for t in r['seconds'])} s\n" for r in compiles
+                )
+                if compiles
+                else ""
+            )
+            + "".join(
+                f"\n{json.dumps({k: v for k, v in r.items() if k != 'status'})}: {r['status']}\n"
+                for r in run["cases"]
+                if r["status"] != "ok"
+            )
+        )
+    return "\n".join(parts)
+
+
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--envs", type=int, nargs="+", default=[1, 64, 1024, 4096, 16384])
     parser.add_argument("--steps-per-run", type=int, default=200_000, help="env-steps per timed port run")
@@ -238,7 +360,11 @@ def main() -> None:
         action="store_true",
         help="also time every batch compiled with amjax.cores.REDUCTIONS_IN_XLA (opt-in option)",
     )
-    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument(
+        "--out",
+        help="results file to append to (default: benchmarks/results/lunar_lander_speed_<date>_<machine>.jsonl; "
+        "the markdown table is written beside it)",
+    )
     parser.add_argument(
         "--solvers",
         nargs="+",
@@ -247,74 +373,35 @@ def main() -> None:
         help="the port's settings to time: Box2D's sweeps everywhere (the default env), "
         "jump_sweeps=True and/or exact_free_flight=True",
     )
-    args = parser.parse_args()
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        harness.child_result(run_case(json.loads(args.child)))
+        return 0
 
-    devices = jax.devices()
-    gym = gymnasium_rate(args.gymnasium_steps)
-    singles, step_compiles, rows = {}, {}, []
+    cases: list[dict[str, Any]] = [{"case": "gymnasium", "steps": args.gymnasium_steps}]
     for solver in args.solvers:
-        env = LunarLander(exact_free_flight=solver == "exact_free_flight", jump_sweeps=solver == "jump_sweeps")
-        for path in SINGLE_ENV_PATHS:
-            singles[solver, path] = single_env_rate(env, args.single_env_steps, path)
-            print(f"{solver}: one env, {path}: {singles[solver, path]:,.0f} steps/s", flush=True)
-        step_compiles[solver] = [step_compile_seconds(env, 1024) for _ in range(args.step_compiles)]
-        print(
-            f"{solver}: one vmapped step at 1,024 envs compiles in "
-            f"{', '.join(f'{t:.1f}' for t in step_compiles[solver])} s",
-            flush=True,
-        )
+        cases += [
+            {"case": "single", "solver": solver, "path": p, "steps": args.single_env_steps} for p in SINGLE_ENV_PATHS
+        ]
+        if args.step_compiles > 0:
+            cases.append({"case": "step_compile", "solver": solver, "envs": 1024, "repeats": args.step_compiles})
         runs = [(n, "random") for n in args.envs] + [(n, "heuristic") for n in args.heuristic_envs]
-        options = [None, REDUCTIONS_IN_XLA] if args.reductions_in_xla else [None]
-        for (n, policy), compiler_options in itertools.product(runs, options):
-            n_steps = int(np.clip(args.steps_per_run // n, 100, 2000))
-            row = {**port_rate(env, n, n_steps, devices, args.burn_in, policy, compiler_options), "solver": solver}
-            rows.append(row)
-            print(
-                f"{solver}, {policy}, {n} envs{', REDUCTIONS_IN_XLA' if compiler_options else ''}: "
-                f"{row['rate']:,.0f} env-steps/s, compile {row['compile_s']:.1f} s",
-                flush=True,
+        for (n, policy), in_xla in itertools.product(runs, [False, True] if args.reductions_in_xla else [False]):
+            cases.append(
+                {
+                    "case": "port",
+                    "solver": solver,
+                    "envs": n,
+                    "policy": policy,
+                    "reductions_in_xla": in_xla,
+                    "steps": int(np.clip(args.steps_per_run // n, 100, 2000)),
+                    "burn_in": args.burn_in,
+                }
             )
-
-    load = os.getloadavg()
-    lines = [
-        f"# LunarLander-v3 speed, {datetime.date.today()}",
-        "",
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, {len(devices)} JAX CPU devices, "
-        f"jax {jax.__version__}; load average at the end {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} "
-        f"(other jobs on the machine slow both systems). The port's timed runs start after {args.burn_in} "
-        "untimed steps (envs at every phase of their episodes). amjax's XLA CPU options (amjax.cores.xla_cpu_options): "
-        f"{'on' if 'xla_cpu_small_while_loop' in os.environ.get('XLA_FLAGS', '') else 'off (XLA defaults)'}.",
-        "",
-        "| system | envs | devices | env-steps/s | vs Gymnasium | compile (s) | program memory (MiB) "
-        "| peak RSS (MiB) |",
-        "|---|---|---|---|---|---|---|---|",
-        f"| Gymnasium LunarLander-v3 (C++ Box2D), Python loop | 1 | 1 core | {gym:,.0f} | 1.0x | - | - | - |",
-    ]
-    for (solver, path), single in singles.items():
-        lines.append(
-            f"| port ({SOLVERS[solver]}), one env's step called from Python, {SINGLE_ENV_PATHS[path]} "
-            f"| 1 | 1 | {single:,.0f} | {single / gym:.2f}x | - | - | - |"
-        )
-    for r in rows:
-        actions = "" if r["policy"] == "random" else ", Gymnasium's heuristic controller"
-        actions += ", compiled with `amjax.cores.REDUCTIONS_IN_XLA`" if r["options"] else ""
-        lines.append(
-            f"| port ({SOLVERS[r['solver']]}), vmapped `env.step` in `lax.scan`{actions} | {r['envs']:,} "
-            f"| {r['devices']} "
-            f"| {r['rate']:,.0f} | "
-            f"{r['rate'] / gym:.1f}x | {r['compile_s']:.1f} | {r['program_mib']:.1f} | {r['rss_mib']:,.0f} |"
-        )
-    lines += [
-        "",
-        "Compile of one vmapped `env.step` at 1,024 envs (`jax.jit(jax.vmap(env.step))` traced, lowered and "
-        "compiled, fresh each time; the compile column above is the whole scanned rollout under `shard_map`):",
-    ]
-    for solver, times in step_compiles.items():
-        if times:
-            lines.append(f"- {SOLVERS[solver]}: {', '.join(f'{t:.1f}' for t in times)} s")
-    table = "\n".join(lines) + "\n"
-    save_table(table, args.out, "lunar_lander_speed")
+    harness.run_cases("lunar_lander_speed", harness.settings_of(args), args.out, __file__, cases, render)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

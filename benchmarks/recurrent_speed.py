@@ -10,7 +10,7 @@ included) and the child's peak resident memory. Cases:
 - `drqn`: DRQN with today's defaults.
 - `ppo-rnn`: recurrent PPO with its defaults.
 
-    taskset -c 1 python benchmarks/recurrent_speed.py  # writes benchmarks/results/recurrent_speed_<date>[_N].md
+    taskset -c 1 python benchmarks/recurrent_speed.py  # benchmarks/results/recurrent_speed_<date>_<machine>.jsonl / .md
     python benchmarks/recurrent_speed.py --configs 4 --steps 4096 --cases drqn  # a smoke run
     python benchmarks/recurrent_speed.py --devices 2  # every case split over 2 CPU devices, as a sweep runs
 
@@ -21,15 +21,15 @@ JAX CPU devices (one per core, `jax.shard_map`), as the sweep runner does (`amja
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
-import resource
-import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
+
+if not __package__:  # run as a file: the repository importable, for `benchmarks.harness`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks import harness  # noqa: E402
 
 # The settings DRQN had before issue 13 (its defaults then); every other field is today's default.
 OLD_DRQN = {
@@ -97,38 +97,42 @@ def run_case(name: str, configs: int, steps: int, eval_every: int, devices: int 
         "compile_s": round(compile_s, 1),
         "run_s": round(run_s, 1),
         "env_steps_per_s": round(configs * total / run_s),
-        "peak_rss_mib": round(_peak_rss_mib()),
         "final_eval_return_median": round(float(jnp.median(returns[:, -1])), 1),
     }
 
 
-def _peak_rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+def render(runs: list[dict[str, Any]]) -> str:
+    """The markdown of a results file: one table per run, env steps/s against drqn-old's of the same run."""
+    parts = []
+    for run in runs:
+        settings, results = run["settings"], [r for r in run["cases"] if r["status"] == "ok"]
+        base = next((r for r in results if r["case"] == "drqn-old"), None)
 
+        def ratio(r: dict[str, Any], base: dict[str, Any] | None = base) -> str:
+            return f"{r['env_steps_per_s'] / base['env_steps_per_s']:.1f}x" if base else ""
 
-def markdown(results: list[dict[str, Any]], args: argparse.Namespace) -> str:
-    base = next((r for r in results if r["case"] == "drqn-old"), None)
-    lines = [
-        f"# Recurrent agents at sweep scale ({datetime.date.today()})",
-        "",
-        f'{args.configs} configurations (costs {", ".join(map(str, COSTS))} x seeds) of CartPole-v0 (mode "last") '
-        f"in one vmapped program per case, split over {args.devices} CPU device(s), each case in its own process, "
-        f"one after the other; {platform.node()}, {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} CPUs, CPU affinity {sorted(os.sched_getaffinity(0))}, load average at the end "
-        f"{os.getloadavg()[0]:.1f}. Env steps/s: all configurations together, evaluations included, compile "
-        "excluded.",
-        "",
-        "| case | settings | steps / config | compile (s) | run (s) | env steps/s | vs drqn-old | peak RSS (MiB) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for r in results:
-        ratio = f"{r['env_steps_per_s'] / base['env_steps_per_s']:.1f}x" if base else ""
-        settings = ", ".join(f"{k}={v}" for k, v in r["overrides"].items()) or "defaults"
-        lines.append(
-            f"| {r['case']} | {settings} | {r['steps_per_config']:,} | {r['compile_s']} | {r['run_s']} | "
-            f"{r['env_steps_per_s']:,} | {ratio} | {r['peak_rss_mib']:,} |"
+        parts.append(
+            f"# Recurrent agents at sweep scale ({run['date'][:10]})\n\n"
+            f"{settings['configs']} configurations (costs {', '.join(map(str, COSTS))} x seeds) of CartPole-v0 "
+            f'(mode "last") in one vmapped program per case, split over {settings["devices"]} CPU device(s), each '
+            "case in its own process, one after the other. Env steps/s: all configurations together, evaluations "
+            f"included, compile excluded. {harness.describe(run)}\n\n"
+            + harness.markdown_table(
+                results,
+                [
+                    ("case", lambda r: r["case"]),
+                    ("settings", lambda r: ", ".join(f"{k}={v}" for k, v in r["overrides"].items()) or "defaults"),
+                    ("steps / config", lambda r: r["steps_per_config"]),
+                    ("compile (s)", lambda r: r["compile_s"]),
+                    ("run (s)", lambda r: r["run_s"]),
+                    ("env steps/s", lambda r: r["env_steps_per_s"]),
+                    ("vs drqn-old", ratio),
+                    ("peak RSS (MiB)", lambda r: r["peak_rss_mib"]),
+                ],
+            )
+            + "".join(f"\n{r['case']}: {r['status']}\n" for r in run["cases"] if r["status"] != "ok")
         )
-    return "\n".join(lines) + "\n"
+    return "\n".join(parts)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -146,8 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--out",
-        help="markdown file to write (default: benchmarks/results/recurrent_speed_<date>.md, "
-        "with _2, _3, ... added rather than overwriting an earlier result)",
+        help="results file to append to (default: benchmarks/results/recurrent_speed_<date>_<machine>.jsonl; the "
+        "markdown table is written beside it)",
     )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -158,45 +162,24 @@ def main(argv: list[str] | None = None) -> int:
     if args.configs % args.devices:
         parser.error(f"--configs: {args.configs} must be a multiple of --devices ({args.devices})")
     if args.child:
-        print(json.dumps(run_case(args.child, args.configs, args.steps, args.eval_every, args.devices)))
+        case = json.loads(args.child)
+        harness.child_result(
+            run_case(case["case"], case["configs"], case["steps"], case["eval_every"], case["devices"])
+        )
         return 0
 
-    results = []
-    for name in args.cases:
-        command = [
-            sys.executable,
-            __file__,
-            "--child",
-            name,
-            "--configs",
-            str(args.configs),
-            "--steps",
-            str(args.steps),
-            "--eval-every",
-            str(args.eval_every),
-            "--devices",
-            str(args.devices),
-        ]
-        output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
-        results.append(json.loads(output.strip().splitlines()[-1]))
-        print(json.dumps(results[-1]), flush=True)
-    text = markdown(results, args)
-    print(text)
-    out = args.out or _unused_path(f"benchmarks/results/recurrent_speed_{datetime.date.today()}", ".md")
-    os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
-    with open(out, "w") as f:
-        f.write(text)
-    print(f"written to {out}")
+    cases = [
+        {
+            "case": name,
+            "configs": args.configs,
+            "steps": args.steps,
+            "eval_every": args.eval_every,
+            "devices": args.devices,
+        }
+        for name in args.cases
+    ]
+    harness.run_cases("recurrent_speed", harness.settings_of(args), args.out, __file__, cases, render)
     return 0
-
-
-def _unused_path(stem: str, suffix: str) -> str:
-    """`stem + suffix`, or the first of `stem_2 + suffix`, `stem_3 + suffix`, ... that does not exist yet."""
-    path, n = stem + suffix, 1
-    while os.path.exists(path):
-        n += 1
-        path = f"{stem}_{n}{suffix}"
-    return path
 
 
 if __name__ == "__main__":

@@ -1,11 +1,11 @@
 """The command line: `python -m benchmarks.throughput` from the repository root, or `python benchmarks/throughput`.
-The parent builds the cases and runs each in a child process (the same command with --child CASE), then reports."""
+The parent builds the cases and runs each in a child process (this file run with --child CASE_JSON, through
+`benchmarks.harness.run_child`), records each as a JSON line (`harness.Recorder`), then renders the report from them."""
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -16,6 +16,7 @@ if not __package__:  # run as `python benchmarks/throughput`: import the package
     sys.path[:1] = [str(_ROOT)] if sys.path and Path(sys.path[0]).resolve() == _HERE else [str(_ROOT), *sys.path[:1]]
 
 import benchmarks.throughput as package  # noqa: E402
+from benchmarks import harness  # noqa: E402
 from benchmarks.throughput import cases, report, runners, timing  # noqa: E402
 
 
@@ -120,8 +121,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sb3_arguments(parser)
     _add_extra_arguments(parser)
     parser.add_argument("--timeout", type=float, default=900, help="seconds per case before it is abandoned")
-    parser.add_argument("--markdown", default=None, help="also write the table and notes as markdown to this path")
-    parser.add_argument("--json", default=None, help="also write the raw results as JSON to this path")
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="results file to append the run's JSON lines to (default: "
+        "benchmarks/results/throughput_<date>_<machine>.jsonl); the report of all its runs is written beside it (.md)",
+    )
+    parser.add_argument("--markdown", default=None, help="also write this run's report (markdown) to this path")
+    parser.add_argument("--json", default=None, help="also write this run's records as one JSON document to this path")
     parser.add_argument("--quick", action="store_true", help="smoke run: tiny sizes and budgets")
     return parser
 
@@ -155,15 +162,14 @@ def resolve(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpar
     return args
 
 
-def run_cases(todo: list[dict[str, Any]], timeout: float) -> list[dict[str, Any]]:
-    """Each case in a fresh process, one after another, with a progress line each."""
+def run_cases(todo: list[dict[str, Any]], timeout: float, recorder: harness.Recorder) -> None:
+    """Each case in a fresh process, one after another, with a progress line each; each recorded."""
     print(f"{len(todo)} cases, each in a fresh process:", flush=True)
-    results = []
     for i, case in enumerate(todo, 1):
         print(report.case_line(i, len(todo), case), end="", flush=True)
-        results.append(timing.run_case(case, timeout))
-        print(report.result_line(results[-1]), flush=True)
-    return results
+        result = timing.run_case(case, timeout)
+        print(report.result_line(result), flush=True)
+        recorder.case(result)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -173,17 +179,20 @@ def main(argv: list[str] | None = None) -> None:
         runners.run_child(json.loads(args.child))
         return
     resolve(parser, args)
-    info, load_start = report.machine_info(), os.getloadavg()
-    header = report.header_lines(info, load_start[0])
-    print("\n".join(header), flush=True)
-    results = run_cases(cases.build_cases(args), args.timeout)
-    header.append(f"Load average at end: {os.getloadavg()[0]:.2f} (1 min)")
-    rows, ratios, notes = report.table_rows(results), report.ratio_lines(results), report.note_lines(args, results)
-    report.print_report(header, rows, ratios, notes)
+    settings = {key: value for key, value in vars(args).items() if key != "child"}
+    recorder = harness.Recorder("throughput", {**settings, "software": report.software()}, args.out)
+    print(f"recording to {recorder.path}", flush=True)
+    run_cases(cases.build_cases(args), args.timeout, recorder)
+    recorder.end()
+    run = next(r for r in harness.read_runs(recorder.path) if r["run"] == recorder.run)
+    text = report.render([run])
+    print("\n" + text)
+    print(f"written to {recorder.path} and {harness.write_markdown(recorder.path, report.render)}")
     if args.markdown:
-        report.write_markdown(args.markdown, header, rows, ratios, notes)
+        Path(args.markdown).write_text(text)
+        print(f"markdown written to {args.markdown}")
     if args.json:
-        report.write_json(args.json, info, load_start, args, results)
+        report.write_json(args.json, run)
 
 
 if __name__ == "__main__":

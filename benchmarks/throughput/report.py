@@ -1,4 +1,5 @@
-"""What the benchmark prints and writes: the machine, the table (text and markdown), the ratio lines, and the notes
+"""What the benchmark prints and writes: the progress lines, and the report rendered from a results file's JSON lines
+(`render`, what `python -m benchmarks.harness render FILE.jsonl` calls): the table, the ratio lines, and the notes
 (the prose lives in notes.md, a string.Template this module fills with the run's figures)."""
 
 from __future__ import annotations
@@ -7,76 +8,28 @@ import argparse
 import contextlib
 import json
 import math
-import os
-import platform
 from collections.abc import Callable
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from string import Template
 from typing import Any
 
+from benchmarks import harness
+
 from .cases import COSTS, ENV_ID, IMPL_LABELS, IMPLS, MAX_EPISODE_STEPS, TRANSITION_BYTES
 
 NOTES = Path(__file__).with_name("notes.md")
-HEADER = [
-    "implementation",
-    "agent",
-    "env",
-    "configs",
-    "steps/config",
-    "buffer/config",
-    "eval/train steps",
-    "compile (s)",
-    "run (s)",
-    "run CPU (s)",
-    "env-steps/s",
-    "peak RSS (MiB)",
-    "eval return",
-]
+SOFTWARE = ("jaxlib", "flax", "optax", "gymnax", "stable_baselines3", "torch")  # besides Python and jax (the harness's)
 
 
-def machine_info() -> dict[str, str]:
-    """The CPU, memory and software versions, for the report's header."""
-    from importlib.metadata import version
-
-    import jax
-
-    from amjax.cores import cpu_model
-
-    cpu = cpu_model()
-    try:
-        mem = f"{os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2**30:.0f} GiB RAM"
-    except (ValueError, OSError):
-        mem = "RAM unknown"
-    software = (
-        f"Python {platform.python_version()}, jax {jax.__version__}, jaxlib {version('jaxlib')}, "
-        f"flax {version('flax')}, optax {version('optax')}, gymnax {version('gymnax')}, backend {jax.default_backend()}"
-    )
-    with contextlib.suppress(Exception):  # optional
-        software += f", stable-baselines3 {version('stable_baselines3')}, torch {version('torch')}"
-    return {
-        "cpu": f"{cpu}, {len(os.sched_getaffinity(0))} cores usable ({os.cpu_count()} online), {mem}",
-        "software": software,
-    }
-
-
-def save_table(table: str, out: Path | None, name: str) -> Path:
-    """Print a benchmark's markdown `table` and write it to `out` (default benchmarks/results/<name>_<date>.md)."""
-    import datetime
-
-    print(table)
-    out = out or Path(__file__).parents[1] / "results" / f"{name}_{datetime.date.today()}.md"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(table)
-    print(f"written to {out}")
-    return out
-
-
-def header_lines(info: dict[str, str], load_start: float) -> list[str]:
-    return [
-        f"Machine: {info['cpu']}",
-        f"Software: {info['software']}",
-        f"Load average at start: {load_start:.2f} (1 min); above ~0.5 the timings are noisy",
-    ]
+def software() -> dict[str, str]:
+    """The installed versions of the libraries the cases run on (SB3 and torch where installed), read from the
+    package metadata, so the parent never imports jax: recorded in the run's settings."""
+    versions = {}
+    for name in SOFTWARE:
+        with contextlib.suppress(PackageNotFoundError):
+            versions[name.replace("_", "-")] = version(name)
+    return versions
 
 
 def _fmt(value: Any, spec: str = ".1f") -> str:
@@ -134,45 +87,51 @@ def _eval_ratio(r: dict[str, Any]) -> float | None:
     return r["evals"] * r["eval_episodes"] * MAX_EPISODE_STEPS / r["steps"]
 
 
-def _table_row(r: dict[str, Any]) -> list[str]:
-    ok = r.get("status") == "ok"
-    label = f"SB3 {r['agent'].upper()} (defaults)" if r["impl"] == "sb3" else IMPL_LABELS[r["impl"]]
-    return [
-        label,
-        r["agent"].upper(),
-        _env_label(r),
-        str(r["configs"]),
-        f"{r['steps']:,}",
-        f"{r['buffer']:,}" if r.get("buffer") else "-",
-        _fmt(_eval_ratio(r), ".2f"),
-        _fmt(r.get("compile_s")) if ok else "-",
-        _fmt(r.get("run_s")) if ok else "-",
-        _fmt(r.get("run_cpu_s")) if ok else "-",
-        _rate(r.get("steps_per_s")) if ok else r.get("status", "?"),
-        _fmt(r.get("peak_rss_mib"), ".0f") if ok else "-",
-        _fmt(r.get("eval_return")) if ok else "-",
-    ]
+def _ok(r: dict[str, Any]) -> bool:
+    return r.get("status") == "ok"
 
 
-def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
-    # The overhead cases are reported as ratios: their run times are paired, not a throughput.
-    return [_table_row(r) for r in results if r["impl"] != "overhead"]
+def _label(r: dict[str, Any]) -> str:
+    return f"SB3 {r['agent'].upper()} (defaults)" if r["impl"] == "sb3" else IMPL_LABELS[r["impl"]]
 
 
-def format_text(rows: list[list[str]]) -> str:
-    widths = [max([len(h), *(len(row[i]) for row in rows)]) for i, h in enumerate(HEADER)]
+def _seconds(key: str) -> Callable[[dict[str, Any]], Any]:
+    """A column of seconds to 0.1 s, "-" for a failed case."""
 
-    def line(cells: list[str]) -> str:
-        return "  ".join(
-            c.rjust(w) if i >= 3 else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths, strict=True))
-        )
+    def value(r: dict[str, Any]) -> Any:
+        return round(r[key], 1) if _ok(r) and r.get(key) is not None else "-"
 
-    return "\n".join([line(HEADER), line(["-" * w for w in widths]), *map(line, rows)])
+    return value
 
 
-def format_markdown(rows: list[list[str]]) -> str:
-    align = "|" + "|".join("---" if i < 3 else "---:" for i in range(len(HEADER))) + "|"
-    return "\n".join(["| " + " | ".join(HEADER) + " |", align, *("| " + " | ".join(row) + " |" for row in rows)])
+# The table's columns: (header, value of a case record), for `harness.markdown_table`. A failed case keeps its row,
+# its status in the env-steps/s column.
+COLUMNS: list[tuple[str, Callable[[dict[str, Any]], Any]]] = [
+    ("implementation", _label),
+    ("agent", lambda r: r["agent"].upper()),
+    ("env", _env_label),
+    ("configs", lambda r: r["configs"]),
+    ("steps/config", lambda r: r["steps"]),
+    ("buffer/config", lambda r: r.get("buffer") or "-"),
+    ("eval/train steps", lambda r: _fmt(_eval_ratio(r), ".2f")),
+    ("compile (s)", _seconds("compile_s")),
+    ("run (s)", _seconds("run_s")),
+    ("run CPU (s)", _seconds("run_cpu_s")),
+    ("env-steps/s", lambda r: _rate(r.get("steps_per_s")) if _ok(r) else r.get("status", "?")),
+    ("peak RSS (MiB)", lambda r: r.get("peak_rss_mib", "-") if _ok(r) else "-"),
+    ("eval return", lambda r: _fmt(r.get("eval_return")) if _ok(r) else "-"),
+]
+
+
+def table_rows(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The cases that are table rows. The overhead cases are reported as ratios: their run times are paired, not a
+    throughput."""
+    return [r for r in results if r["impl"] != "overhead"]
+
+
+def table(results: list[dict[str, Any]]) -> str:
+    """The markdown table of a run's cases (its header even without rows)."""
+    return harness.markdown_table(table_rows(results), COLUMNS)
 
 
 def _find(results: list[dict[str, Any]], impl: str, agent: str, configs: int | None = None) -> dict | None:
@@ -365,27 +324,39 @@ def note_lines(args: argparse.Namespace, results: list[dict[str, Any]]) -> list[
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# The outputs.
+# The report of a results file.
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def print_report(header: list[str], rows: list[list[str]], ratios: list[str], notes: list[str]) -> None:
-    print("\n" + "\n".join(header) + "\n")
-    print(format_text(rows))
-    print("\nRatios (env-steps/s):")
-    print("\n".join(f"  {line}" for line in ratios) or "  (none: a pair of cases is missing)")
-    print("Notes:")
-    print("\n".join(f"  - {line}" for line in notes))
+def _software_line(run: dict[str, Any]) -> str:
+    m, versions = run["machine"], run["settings"].get("software", {})
+    libraries = "".join(f", {name} {v}" for name, v in versions.items())  # jax's version is in `describe`'s line
+    return f"Python {m['python']}{libraries}, backend {m['backend']}"
 
 
-def write_markdown(path: str, header: list[str], rows: list[list[str]], ratios: list[str], notes: list[str]) -> None:
-    md = ["\n".join(f"- {line}" for line in header), "", format_markdown(rows), "", "Ratios (env-steps/s):", ""]
-    md += [f"- {line}" for line in ratios] + ["", "Notes:", ""] + [f"- {line}" for line in notes]
-    Path(path).write_text("\n".join(md) + "\n")
-    print(f"markdown written to {path}")
+def render_run(run: dict[str, Any]) -> str:
+    """One run's report: where and when, the table, the ratios and the notes."""
+    args, results = argparse.Namespace(**run["settings"]), run["cases"]
+    ratios, notes = ratio_lines(results), note_lines(args, results)
+    md = [
+        f"- Run: {harness.describe(run)}",
+        f"- Software: {_software_line(run)}",
+        "- A load average above ~0.5 (1 min) makes the timings noisy",
+        "",
+        table(results),
+    ]
+    if ratios:
+        md += ["Ratios (env-steps/s):", "", *(f"- {line}" for line in ratios), ""]
+    md += ["Notes:", "", *(f"- {line}" for line in notes)]
+    return "\n".join(md) + "\n"
 
 
-def write_json(path: str, info: dict[str, str], load_start: Any, args: argparse.Namespace, results: list) -> None:
-    payload = {"machine": info, "load_start": load_start, "args": vars(args), "results": results}
-    Path(path).write_text(json.dumps(payload, indent=1, default=str))
+def render(runs: list[dict[str, Any]]) -> str:
+    """The markdown of a results file (`harness.read_runs`): each run's report, a rule between runs."""
+    return "\n---\n\n".join(render_run(run) for run in runs)
+
+
+def write_json(path: str | Path, run: dict[str, Any]) -> None:
+    """--json: the run's records (its "run" line with its `cases` and `load_end`) as one JSON document."""
+    Path(path).write_text(json.dumps(run, indent=1, default=str))
     print(f"raw results written to {path}")

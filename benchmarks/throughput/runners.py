@@ -1,9 +1,9 @@
 """The child process: compile and time one case of one implementation (amjax's sweep programs, the interleaved
-wrapper overhead, the plain reference, or Stable-Baselines3), then print its measurements as one RESULT line."""
+wrapper overhead, the plain reference, or Stable-Baselines3), then print its measurements, with its peak RSS, as the
+`RESULT` line `benchmarks.harness.run_child` reads (`harness.child_result`)."""
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from collections.abc import Callable
@@ -11,8 +11,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from benchmarks import harness
+
 from .cases import agent_config, costs
-from .timing import current_rss_mib, interleaved, overhead_figures, peak_rss_mib, timed
+from .timing import current_rss_mib, interleaved, overhead_figures, timed
 
 BENCHMARKS = Path(__file__).resolve().parents[1]  # where reference_ppo.py and reference_dqn.py live
 ENV_ONLY_ENVS, ENV_ONLY_STEPS = 2048, 256  # the env-only overhead rollout: envs x steps, random actions
@@ -136,8 +138,8 @@ def run_overhead(case: dict[str, Any]) -> dict[str, Any]:
     env = interleaved({v: build_env_only({**case, "vanilla": v}) for v in (False, True)}, case["repeats"])
     return {
         "run_s": float(min(train[False])),
-        "run_cpu_s": float("nan"),
-        "compile_s": float("nan"),
+        "run_cpu_s": None,  # paired wall times only: no CPU time or compile time of its own
+        "compile_s": None,
         "eval_return": None,
         "train": overhead_figures(train[False], train[True]),
         "env_only": {
@@ -215,7 +217,7 @@ def run_sb3(case: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_child(case: dict[str, Any]) -> None:
-    """Run the case in this process and print its measurements (peak RSS included) as `RESULT {json}`."""
+    """Run the case in this process and print its measurements (`harness.child_result` adds the peak RSS)."""
     if case["impl"] != "sb3":
         import jax
 
@@ -228,6 +230,4 @@ def run_child(case: dict[str, Any]) -> None:
         runner = run_overhead
     else:
         runner = run_amjax
-    result = runner(case)
-    result["peak_rss_mib"] = peak_rss_mib()
-    print("RESULT " + json.dumps(result), flush=True)
+    harness.child_result(runner(case))

@@ -1,23 +1,19 @@
-"""How the benchmark measures: memory from the kernel, wall and CPU time of repeated or interleaved runs, and each
-case in a fresh subprocess (this package run again with --child) so that its peak RSS is its own."""
+"""How the benchmark measures: wall and CPU time of repeated or interleaved runs, resident memory before compiling,
+and each case in a fresh subprocess (benchmarks/throughput/__main__.py run again with --child, through
+`benchmarks.harness.run_child`) so that its peak RSS, which the child reports with `harness.child_result`, is its
+own."""
 
 from __future__ import annotations
 
-import json
 import os
-import resource
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[2]  # the repository: the child's working directory and import root
+from benchmarks import harness
 
-
-def peak_rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+CHILD = Path(__file__).with_name("__main__.py")  # the script each case runs in: `python CHILD --child CASE_JSON`
 
 
 def current_rss_mib() -> float:
@@ -67,36 +63,17 @@ def overhead_figures(active: list[float], vanilla: list[float]) -> dict[str, Any
 
 
 def _child_env(case: dict[str, Any]) -> dict[str, str]:
-    """The child's environment: the repository importable, and its CPU device count. amjax takes one device per
-    core on import unless told (--cores); the plain reference runs on one."""
-    pythonpath = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    """What the child's environment adds to this one's (the harness makes the repository importable): its CPU device
+    count. amjax takes one device per core on import unless told (--cores); the plain reference runs on one."""
     if not case["impl"].startswith("amjax"):
-        devices = {"JAX_NUM_CPU_DEVICES": "1"}
-    else:
-        devices = {"JAX_NUM_CPU_DEVICES": str(case["cores"])} if case["cores"] else {}
-    return dict(os.environ, PYTHONPATH=pythonpath, **devices)
+        return {"JAX_NUM_CPU_DEVICES": "1"}
+    return {"JAX_NUM_CPU_DEVICES": str(case["cores"])} if case["cores"] else {}
 
 
 def run_case(case: dict[str, Any], timeout: float) -> dict[str, Any]:
-    """Run one case in a fresh process (`python -m benchmarks.throughput --child CASE`); the case with its
-    measurements and status "ok", or a status saying why there are none."""
-    start = time.perf_counter()
-    try:
-        proc = subprocess.run(
-            [sys.executable, "-m", "benchmarks.throughput", "--child", json.dumps(case)],
-            capture_output=True,
-            text=True,
-            timeout=timeout,
-            env=_child_env(case),
-            cwd=str(ROOT),
-        )
-    except subprocess.TimeoutExpired:
-        return {**case, "status": f"timeout after {timeout:.0f} s"}
-    wall = time.perf_counter() - start
-    for line in proc.stdout.splitlines():
-        if line.startswith("RESULT "):
-            result = {**case, **json.loads(line[len("RESULT ") :]), "status": "ok", "wall_s": wall}
-            result["steps_per_s"] = result["configs"] * result["steps"] / result["run_s"]
-            return result
-    tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
-    return {**case, "status": f"failed: {tail[0][:200]}"}
+    """Run one case in a fresh process (`harness.run_child`); the case with its measurements (the child's peak RSS
+    and the aggregate env-steps/s included) and status "ok", or a status saying why there are none."""
+    result = harness.run_child(CHILD, case, timeout=timeout, env=_child_env(case))
+    if result["status"] == "ok":
+        result["steps_per_s"] = result["configs"] * result["steps"] / result["run_s"]
+    return result
