@@ -5,7 +5,13 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
+import jax
 import numpy as np
+
+
+def is_traced(value: Any) -> bool:
+    """Whether any leaf of `value` is a tracer (under jit / vmap: its caller checked the concrete values)."""
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value))
 
 
 def check_choice(name: str, value: Any, allowed: Iterable[Any]) -> None:

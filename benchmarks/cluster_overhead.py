@@ -190,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     scratch = Path(args.scratch or tempfile.mkdtemp(prefix="amjax_cluster_"))
-    settings = {k: v for k, v in vars(args).items() if k != "child"}
+    settings = harness.settings_of(args)
     recorder = harness.Recorder("cluster_overhead", {**settings, "scratch": str(scratch)}, args.out)
     sweep = {"steps": args.steps, "seeds": args.seeds}
     local = recorder.case(

@@ -16,9 +16,9 @@ import numpy as np
 from flax import struct
 
 from amjax.envs.registry import make_env
-from amjax.validation import check_positive_int, check_real, check_whole_number
+from amjax.validation import check_positive_int, check_real, check_whole_number, is_traced
 from amjax.wrappers.instruments import resolve_instruments
-from amjax.wrappers.spec import MEASURE_HEADS, MeasureSpec, is_traced, static
+from amjax.wrappers.spec import MEASURE_HEADS, MeasureSpec, static
 
 __all__ = [
     "MAX_EPISODES",

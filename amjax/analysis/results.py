@@ -193,18 +193,13 @@ def _planned_configs(spec: dict[str, Any]) -> int | None:
                     continue
                 if not scope and f"{agent}.{name}" in spec["hyperparams"]:
                     continue  # the agent's own value replaces the shared one
-                count = len(value) if _is_swept(name, value, fields) else 1
+                count = len(value) if is_swept(name, value, None if fields is None else fields[name]) else 1
                 costed *= count
                 plain *= 1 if name in MEASURE_FIELDS else count
             total += len(spec["costs"]) * costed + bool(spec.get("vanilla")) * plain
         return len(spec["envs"]) * len(spec["seeds"]) * total
     except (KeyError, TypeError):
         return None
-
-
-def _is_swept(name: str, value: Any, fields: dict[str, Any] | None) -> bool:
-    """Whether a stored hyperparameter value is a list of values (`amjax.sweep.grid.is_swept`)."""
-    return is_swept(name, value, None if fields is None else fields[name])
 
 
 def sweep_progress(data: SweepData) -> dict[str, Any]:

@@ -61,7 +61,7 @@ from gymnax.environments import spaces
 from gymnax.environments.environment import Environment
 from gymnax.wrappers.purerl import GymnaxWrapper
 
-from amjax.validation import check_bool, check_choice, check_real
+from amjax.validation import check_bool, check_choice, check_real, is_traced
 from amjax.wrappers.instruments import (
     check_instruments,
     decode_mask,
@@ -498,7 +498,7 @@ def check_measure_setup(vanilla: Any, mode: Any, noise_std: Any, options: dict[s
     otherwise."""
     check_bool("vanilla", vanilla)
     check_choice("mode", mode, MODES)
-    traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(noise_std))
+    traced = is_traced(noise_std)
     std = None if noise_std is None or traced else check_real("noise_std", noise_std, low=0.0)
     std_set = std is not None and bool(std.any())
     if vanilla:

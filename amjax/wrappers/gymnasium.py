@@ -29,7 +29,7 @@ from amjax.cores import TreeLayout, jit_one_kernel
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real, check_whole_number
 from amjax.wrappers.active_measure import REWARD_TIMINGS, UNBOUNDED, check_extra_obs, check_measure_setup
 from amjax.wrappers.instruments import check_instrument_values, check_instruments, feature_owner, resolve_instruments
-from amjax.wrappers.spec import MeasureSpec
+from amjax.wrappers.spec import MeasureSpec, is_given
 
 __all__ = ["ActiveMeasureWrapper", "GymnasiumEnv", "gymnasium_space", "to_gymnasium"]
 
@@ -252,8 +252,8 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         if instruments == "default":
             instruments = resolve_instruments(env.spec.id if env.spec is not None else "", instruments)
 
-        def given(value: Any) -> Any:
-            return None if isinstance(value, tuple) and not value else value
+        def given(value: Any) -> Any:  # () means zeros here, None there
+            return value if is_given(value) else None
 
         return cls(
             env,

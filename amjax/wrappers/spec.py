@@ -29,7 +29,7 @@ from flax import struct
 from gymnax.environments.environment import Environment
 
 from amjax.envs.registry import make_env
-from amjax.validation import check_bool, check_choice, check_real, check_whole_number
+from amjax.validation import check_bool, check_choice, check_real, check_whole_number, is_traced
 from amjax.wrappers.active_measure import (
     REWARD_TIMINGS,
     ActiveMeasure,
@@ -49,11 +49,6 @@ _NONNEGATIVE = ("cost", "noise_std", "cost_low", "cost_high")
 def static(default: Any) -> Any:
     """A field that sets a shape or a count: part of the compiled program, never vmapped."""
     return struct.field(pytree_node=False, default=default)
-
-
-def is_traced(value: Any) -> bool:
-    """Whether any leaf of `value` is a tracer (under jit / vmap: its caller checked the concrete values)."""
-    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value))
 
 
 @struct.dataclass
@@ -145,8 +140,8 @@ class MeasureSpec:
             "budgeted": self.budgeted,
             "reward_timing": self.reward_timing != "immediate",
             "instruments": self.instruments != (),
-            "instrument_costs": _given(self.instrument_costs),
-            "instrument_noise": _given(self.instrument_noise),
+            "instrument_costs": is_given(self.instrument_costs),
+            "instrument_noise": is_given(self.instrument_noise),
             "cost_conditioned": self.cost_conditioned,
         }
         check_measure_setup(self.vanilla, self.mode, self.noise_std, options)
@@ -183,12 +178,12 @@ class MeasureSpec:
                     "or () for zeros"
                 )
             length = len(value) if isinstance(value, tuple) else (np.shape(value)[-1:] or (1,))[0]
-            if _given(value) and length != len(instruments):
+            if is_given(value) and length != len(instruments):
                 raise ValueError(
                     f"{name}: got {length} values for {len(instruments)} instruments; allowed: one "
                     "number >= 0 per instrument, or () for zeros" + ("" if instruments else " (set instruments first)")
                 )
-            if _given(value) and not is_traced(value):
+            if is_given(value) and not is_traced(value):
                 check_real(name, value, low=0.0)
         return len(instruments)
 
@@ -224,7 +219,7 @@ class MeasureSpec:
             return None if value is None else jnp.asarray(value, jnp.float32)
 
         def per_instrument(value: Any) -> Any:
-            return None if not k else optional(value if _given(value) else (0.0,) * k)
+            return None if not k else optional(value if is_given(value) else (0.0,) * k)
 
         low, high = (optional(self.cost_low), optional(self.cost_high)) if self.cost_conditioned else (None, None)
         return MeasureParams(
@@ -247,6 +242,6 @@ class MeasureSpec:
         return env, self.measure_params(env, env_params)
 
 
-def _given(value: Any) -> bool:
+def is_given(value: Any) -> bool:
     """Whether instrument prices / noise were given (not the empty tuple that means zeros)."""
     return not (isinstance(value, tuple) and not value)
