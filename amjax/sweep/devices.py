@@ -15,7 +15,9 @@ from typing import Any
 import jax
 import jaxlib
 import numpy as np
+from jax.extend.mlir.dialects import stablehlo
 from jax.interpreters import mlir
+from jax.interpreters.mlir import ir
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 CONFIG_AXIS = "configs"
@@ -43,7 +45,8 @@ def shard_configs(function, devices: list[jax.Device]):
 
 
 def _mulhi(x: jax.Array, y: jax.Array) -> jax.Array:
-    """`lax.mulhi` (high half of the double-width product) in same-width integer arithmetic: half-width limbs."""
+    """`lax.mulhi` (high half of the double-width product) in same-width integer arithmetic: half-width limbs.
+    Only for 64-bit integers (`_mulhi_lowering` widens narrower ones): about 20 ops where a widening multiply is 4."""
     bits = np.iinfo(x.dtype).bits
     unsigned = np.dtype(f"uint{bits}")
     half = np.array(bits // 2, unsigned)
@@ -59,6 +62,38 @@ def _mulhi(x: jax.Array, y: jax.Array) -> jax.Array:
     return jax.lax.convert_element_type(high, x.dtype)
 
 
+_mulhi_limbs_lowering = mlir.lower_fun(_mulhi, multiple_results=False)
+
+
+def _mulhi_lowering(ctx: Any, x: Any, y: Any) -> Any:
+    """`lax.mulhi` of integers up to 32 bits as stablehlo ops: both sides widened to twice the width, multiplied,
+    shifted down and narrowed (the same bits as `chlo.mulhi`: see tests/sweep/test_devices.py); 64-bit ones through
+    `_mulhi`'s limbs (no 128-bit integers in XLA).
+
+    Not `_mulhi` for every width: its ~20 ops per call, times Philox's 10 rounds per draw, made a Dueling DQN chunk
+    with instruments (many draws per step) too large for LLVM once XLA compiled its env loop as one kernel (the
+    small-loop option, `amjax.cores`): the sharded compile ran past 10 min where this one takes 13 s."""
+    out = ctx.avals_out[0]
+    bits = np.dtype(out.dtype).itemsize * 8
+    if bits > 32:
+        return _mulhi_limbs_lowering(ctx, x, y)
+    out_type = mlir.aval_to_ir_type(ctx.module_context, out)
+    signed = np.issubdtype(out.dtype, np.signedinteger)
+    wide_element = ir.IntegerType.get_signless(2 * bits) if signed else ir.IntegerType.get_unsigned(2 * bits)
+    wide = ir.RankedTensorType.get(list(out.shape), wide_element)
+
+    def widened(operand: Any, aval: Any) -> Any:
+        if tuple(aval.shape) != tuple(out.shape):  # a scalar (or size-1 axes) broadcast as lax.mulhi allows
+            dims = list(range(len(out.shape) - len(aval.shape), len(out.shape)))
+            operand = stablehlo.broadcast_in_dim(out_type, operand, dims)
+        return stablehlo.convert(wide, operand)
+
+    product = stablehlo.multiply(*(widened(v, a) for v, a in zip((x, y), ctx.avals_in, strict=True)))
+    shift = stablehlo.constant(ir.DenseElementsAttr.get_splat(wide, ir.IntegerAttr.get(wide_element, bits)))
+    high = (stablehlo.shift_right_arithmetic if signed else stablehlo.shift_right_logical)(product, shift)
+    return [stablehlo.convert(out_type, high)]
+
+
 # jaxlib 0.10.2 cannot compile a sharded CPU program that holds `chlo.mulhi` ("Unable to convert MHLO to
 # StableHLO"), and the trainers' Philox keys (`amjax.agents.rollout`) use it. Versions before 0.10 lowered mulhi
 # through plain ops; the later versions amjax allows (< 0.12) are assumed to need the same until checked.
@@ -67,15 +102,15 @@ _MULHI_NEEDS_PLAIN_LOWERING = tuple(int(p) for p in jaxlib.__version__.split("."
 
 @contextlib.contextmanager
 def _mulhi_lowered_without_chlo() -> Iterator[None]:
-    """While open, `lax.mulhi` lowers on CPU through plain integer ops (`_mulhi`, the same bits: see
-    tests/sweep/test_devices.py) instead of `chlo.mulhi`; the previous lowering is restored on exit, so programs
-    outside amjax's sharded sweeps are lowered as JAX would lower them."""
+    """While open, `lax.mulhi` lowers on CPU through plain stablehlo ops (`_mulhi_lowering`, the same bits)
+    instead of `chlo.mulhi`; the previous lowering is restored on exit, so programs outside amjax's sharded sweeps
+    are lowered as JAX would lower them."""
     if not _MULHI_NEEDS_PLAIN_LOWERING:
         yield
         return
     rules = mlir._platform_specific_lowerings["cpu"]
     previous = rules.get(jax.lax.mulhi_p)
-    mlir.register_lowering(jax.lax.mulhi_p, mlir.lower_fun(_mulhi, multiple_results=False), platform="cpu")
+    mlir.register_lowering(jax.lax.mulhi_p, _mulhi_lowering, platform="cpu")
     try:
         yield
     finally:

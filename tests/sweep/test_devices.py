@@ -5,9 +5,11 @@ counts."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import subprocess
 import sys
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
@@ -17,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from amjax.sweep import SweepSpec, run_sweep
+from amjax.sweep import SweepSpec, devices, run_sweep
 from amjax.sweep.devices import _mulhi
 
 # Three configurations: an odd count, so a 2-device batch carries one padding configuration.
@@ -82,6 +84,38 @@ def test_mulhi_replacement_is_exact(bits, signed, data):
     np.testing.assert_array_equal(np.asarray(got), expected)
 
 
+@settings(max_examples=200, deadline=None)
+@given(
+    bits=st.sampled_from([8, 16, 32]),
+    signed=st.booleans(),
+    scalar_side=st.sampled_from([None, "x", "y"]),
+    data=st.data(),
+)
+def test_mulhi_lowering_of_sharded_programs_is_exact(bits, signed, scalar_side, data):
+    """The widening multiply that sharded programs lower `lax.mulhi` to (`_mulhi_lowering`) gives its exact bits,
+    with a scalar on either side as Philox's constants are."""
+    dtype = np.dtype(f"{'int' if signed else 'uint'}{bits}")
+    info = np.iinfo(dtype)
+    values = st.integers(int(info.min), int(info.max))
+    x, y = (data.draw(st.lists(values, min_size=4, max_size=4)) for _ in "xy")
+    x, y = (v[0] if scalar_side == side else v for v, side in ((x, "x"), (y, "y")))
+    expected = ((np.array(x, object) * np.array(y, object)) >> bits).astype(np.int64).astype(dtype)
+    # The scalar as a literal, as Philox's constants are: a constant in the jaxpr, not an argument.
+    if scalar_side == "x":
+        program = functools.partial(lambda c, v: jax.lax.mulhi(c, v), dtype.type(x))
+        args = (jnp.array(y, dtype),)
+    elif scalar_side == "y":
+        program = functools.partial(lambda c, v: jax.lax.mulhi(v, c), dtype.type(y))
+        args = (jnp.array(x, dtype),)
+    else:
+        program, args = jax.lax.mulhi, (jnp.array(x, dtype), jnp.array(y, dtype))
+    with mock.patch.object(devices, "_MULHI_NEEDS_PLAIN_LOWERING", True), devices._mulhi_lowered_without_chlo():
+        lowered = jax.jit(program).lower(*args)
+        assert "chlo.mulhi" not in lowered.as_text()
+        got = lowered.compile()(*args)
+    np.testing.assert_array_equal(np.asarray(got), expected)
+
+
 def _python(code: str, **env: str) -> str:
     """Run `code` in a fresh interpreter, without the caller's JAX device settings; its stdout."""
     clean = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
@@ -143,3 +177,21 @@ run_sweep(spec, {str(tmp_path / "out")!r}, progress=False)
 print(rules())
 """
     assert _python(code).split()[-1] == "False"
+
+
+@pytest.mark.slow
+def test_sharded_dqn_with_instruments_compiles(tmp_path):
+    """`amjax sweep --agent dqn --set instruments=default` on two CPU devices trains. With `lax.mulhi` lowered
+    through half-width limbs its chunk did not finish compiling in 10 min (LLVM on the env loop that XLA makes one
+    kernel, many Philox draws per step); with the widening lowering the command takes about 40 s on two cores. The
+    limit only catches that stall."""
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "train", "sweep", "--env", "CartPole-v0", "--agent", "dqn", "--cost", "0.1"]
+    command += ["--seeds", "2", "--steps", "1024", "--eval-every", "1024", "--eval-episodes", "1", "--no-progress"]
+    command += ["--set", "instruments=default", "--set", "learning_starts=256", "--out", str(out)]
+    clean = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
+    done = subprocess.run(command, env=clean, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "2 CPU devices" in done.stdout or len(os.sched_getaffinity(0)) < 2
+    results = pd.read_parquet(out / "results.parquet")
+    assert len(results) == 2 and np.isfinite(results["eval_return"]).all()
