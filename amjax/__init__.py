@@ -30,6 +30,7 @@ _LAZY = {
     "register": "amjax.envs.registry",
     "registered_envs": "amjax.envs.registry",
     "make": "amjax.factory",
+    "wrap": "amjax.factory",
     "ActiveMeasure": "amjax.wrappers.active_measure",
     "AlwaysMeasured": "amjax.wrappers.active_measure",
     "MeasureParams": "amjax.wrappers.active_measure",

@@ -1,4 +1,5 @@
-"""`amjax.make`: an environment id -> an active-measure environment and its params."""
+"""`amjax.make`: an environment id -> an active-measure environment and its params; `amjax.wrap`: the same for an
+environment object of your own (any gymnax-API env)."""
 
 from __future__ import annotations
 
@@ -71,10 +72,56 @@ def make(
       spec: the whole measurement setting as one `MeasureSpec` (checked by `MeasureSpec.check_measure`); the other
         measurement arguments must then be left at their defaults.
     """
-    if spec is not None:
-        return _make_from_spec(env_id, spec, locals())
+    return _wrapped(env_id, None, None, locals())
+
+
+def wrap(
+    env: Any, env_params: Any = None, *, name: str | None = None, spec: MeasureSpec | None = None, **options: Any
+) -> tuple[Environment, Any]:
+    """Wrap `env`, a JAX environment of your own, as an active-measure MDP; returns `(env, params)` as
+    `amjax.make` does, with every measurement option.
+
+    Args:
+      env: any environment with gymnax 1.0's API (`reset(key, params)`, `step(key, state, action, params)`
+        returning `(obs, state, reward, terminated, truncated, info)` with `info["final_observation"]`,
+        `observation_space(params)`, `action_space(params)`, `default_params`): a subclass of gymnax's
+        `Environment` has all of it. A Discrete or 1-D Box action space, a Box observation space.
+      env_params: its params (default: `env.default_params`).
+      name: what errors and `instruments="default"` call it (default: the class name).
+      spec: the measurement setting as one `MeasureSpec` (as `amjax.make` takes it); or instead:
+      **options: `amjax.make`'s measurement keywords (`cost=0.1, mode="noisy", noise_std=0.1, budget=3, ...`).
+    """
+    missing = [attr for attr in ("reset", "step", "observation_space", "action_space") if not hasattr(env, attr)]
+    if env_params is None and not hasattr(env, "default_params"):
+        missing.append("default_params")
+    if missing:
+        raise TypeError(
+            f"env: a {type(env).__name__} lacks {', '.join(missing)}; allowed: an environment with gymnax 1.0's API "
+            "(a subclass of gymnax.environments.environment.Environment has it), with env_params given if it has "
+            "no default_params"
+        )
+    keywords = {n: p.default for n, p in inspect.signature(make).parameters.items() if n not in ("env_id", "spec")}
+    unknown = sorted(set(options) - set(keywords))
+    if unknown:
+        raise TypeError(f"{', '.join(unknown)}: not a measurement option; allowed: {', '.join(keywords)}, spec")
+    env_params = env.default_params if env_params is None else env_params
+    return _wrapped(name or type(env).__name__, env, env_params, {**keywords, **options, "spec": spec})
+
+
+def _wrapped(env_id: str, env: Any, env_params: Any, arguments: dict[str, Any]) -> tuple[Environment, Any]:
+    """`make`'s work for its `arguments`: `env_id` built from the registry, or `env` (with `env_params`) wrapped
+    under that name."""
+    if arguments["spec"] is not None:
+        return _make_from_spec(env_id, env, env_params, arguments)
+    flag, mode, vanilla, noise_std = (arguments[k] for k in ("flag", "mode", "vanilla", "noise_std"))
+    extra_obs, budget, reward_timing, instruments = (
+        arguments[k] for k in ("extra_obs", "budget", "reward_timing", "instruments")
+    )
+    instrument_costs, instrument_noise, cost_range = (
+        arguments[k] for k in ("instrument_costs", "instrument_noise", "cost_range")
+    )
     check_bool("flag", flag)
-    cost = check_real("cost", cost, low=0.0)
+    cost = check_real("cost", arguments["cost"], low=0.0)
     options = {
         "cost": bool(cost.any()),
         "extra_obs": bool(extra_obs),
@@ -107,7 +154,8 @@ def make(
         cost_low=low,
         cost_high=high,
     )
-    env, env_params = spec.wrap_env(env_id)  # the wrapper checks extra_obs, reward_timing and the instruments
+    # The wrapper checks extra_obs, reward_timing and the instruments.
+    env, env_params = spec.wrap_env(env_id, env, env_params)
     given = {"instrument_costs": instrument_costs, "instrument_noise": instrument_noise}
     k = 0 if vanilla else len(env.instruments)
     spec = spec.replace(
@@ -120,8 +168,10 @@ def make(
     return env, spec.measure_params(env, env_params)
 
 
-def _make_from_spec(env_id: str, spec: MeasureSpec, arguments: dict[str, Any]) -> tuple[Environment, Any]:
-    """`make(env_id, spec=spec)`: the spec checked and built, once no other measurement argument is given."""
+def _make_from_spec(env_id: str, env: Any, env_params: Any, arguments: dict[str, Any]) -> tuple[Environment, Any]:
+    """`make(env_id, spec=spec)` (or `wrap(env, spec=spec)`): the spec checked and built, once no other
+    measurement argument is given."""
+    spec = arguments["spec"]
     if not isinstance(spec, MeasureSpec):
         raise TypeError(f"spec: got {type(spec).__name__}; allowed: a MeasureSpec (or an agent config)")
     defaults = {name: p.default for name, p in inspect.signature(make).parameters.items() if name != "env_id"}
@@ -135,7 +185,7 @@ def _make_from_spec(env_id: str, spec: MeasureSpec, arguments: dict[str, Any]) -
             f"spec: given with {', '.join(given)}; allowed: the measurement setting either as a spec or as "
             "arguments (set those fields in the spec instead)"
         )
-    return spec.measure_spec().make(env_id)
+    return spec.measure_spec().make(env_id, env, env_params)
 
 
 def _equal(value: Any, default: Any) -> bool:

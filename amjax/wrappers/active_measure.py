@@ -297,7 +297,7 @@ class ActiveMeasure(GymnaxWrapper):
 
     @property
     def name(self) -> str:
-        return f"ActiveMeasure({self._env.name})"
+        return f"ActiveMeasure({getattr(self._env, 'name', type(self._env).__name__)})"
 
     # -- dynamics -------------------------------------------------------------------------------
 

@@ -189,9 +189,12 @@ class MeasureSpec:
 
     # -- building the env -----------------------------------------------------------------------------
 
-    def wrap_env(self, env_id: str) -> tuple[Environment, Any]:
-        """The wrapped environment (static fields only) and the *inner* env's params; unchecked (`make` checks)."""
-        env, env_params = make_env(env_id)
+    def wrap_env(self, env_id: str, env: Environment | None = None, env_params: Any = None) -> tuple[Environment, Any]:
+        """The wrapped environment (static fields only) and the *inner* env's params; unchecked (`make` checks).
+        `env` / `env_params`: the plain env to wrap (`amjax.wrap`'s), else `make_env(env_id)`'s; `env_id` then
+        names it (and picks its default instruments)."""
+        if env is None:
+            env, env_params = make_env(env_id)
         if self.vanilla:
             return AlwaysMeasured(env, env_params), env_params
         wrapped = ActiveMeasure(
@@ -235,10 +238,13 @@ class MeasureSpec:
             cost_scale_high=high,
         )
 
-    def make(self, env_id: str) -> tuple[Environment, Any]:
-        """`env_id` wrapped as this spec says, checked first; returns `(env, params)` as `amjax.make` does."""
-        self.check_measure(env_id)
-        env, env_params = self.wrap_env(env_id)
+    def make(self, env_id: str, env: Environment | None = None, env_params: Any = None) -> tuple[Environment, Any]:
+        """`env_id` wrapped as this spec says, checked first; returns `(env, params)` as `amjax.make` does.
+        `env` / `env_params`: a plain env to wrap instead of `make_env(env_id)`'s (`amjax.wrap`)."""
+        if env is None:
+            env, env_params = make_env(env_id)
+        self.check_measure(env_id, env, env_params)
+        env, env_params = self.wrap_env(env_id, env, env_params)
         return env, self.measure_params(env, env_params)
 
 
