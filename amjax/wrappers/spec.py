@@ -39,6 +39,7 @@ from amjax.wrappers.active_measure import (
     check_measure_setup,
 )
 from amjax.wrappers.instruments import check_instruments, resolve_instruments
+from amjax.wrappers.observations import vector_observations
 
 MEASURE_HEADS = ("joint", "factored")
 # The traced fields' allowed values: >= 0, finite; "budget" a whole number. The instruments' are checked per
@@ -97,6 +98,7 @@ class MeasureSpec:
         naming the field and its allowed values otherwise."""
         if env is None:
             env, env_params = make_env(env_id)
+        env = vector_observations(env, env_params)
         check_bool("flag", self.flag)
         check_bool("vanilla", self.vanilla)
         check_extra_obs(self.extra_obs)
@@ -195,6 +197,7 @@ class MeasureSpec:
         names it (and picks its default instruments)."""
         if env is None:
             env, env_params = make_env(env_id)
+        env = vector_observations(env, env_params)  # a Discrete observation as its one-hot vector
         if self.vanilla:
             return AlwaysMeasured(env, env_params), env_params
         wrapped = ActiveMeasure(

@@ -1,0 +1,50 @@
+"""Observations as the active-measure wrapper takes them: vectors. A Discrete(n) observation (gymnax's
+FrozenLake-misc, for one) becomes its one-hot vector of n floats, so the stale flag, staleness features, budgets and
+instruments append to it as to any Box observation, and the agents' MLPs read it."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from gymnax.environments import spaces
+from gymnax.wrappers.purerl import GymnaxWrapper
+
+
+class OneHotObservation(GymnaxWrapper):
+    """`env` with its Discrete(n) observations (and `info["final_observation"]`) as float32 one-hot vectors;
+    `observation_space` is Box(0, 1, (n,)). Everything else is `env`'s."""
+
+    def __init__(self, env: Any, env_params: Any = None):
+        super().__init__(env)
+        space = env.observation_space(env.default_params if env_params is None else env_params)
+        if not isinstance(space, spaces.Discrete):
+            raise TypeError(f"env: OneHotObservation needs a Discrete observation space, got {type(space).__name__}")
+        self.num_values = int(space.n)
+
+    def _one_hot(self, obs: jax.Array) -> jax.Array:
+        return jax.nn.one_hot(obs, self.num_values, dtype=jnp.float32)
+
+    def observation_space(self, params: Any = None) -> spaces.Box:
+        return spaces.Box(0.0, 1.0, (self.num_values,), jnp.float32)
+
+    def reset(self, key: jax.Array, params: Any = None) -> tuple[jax.Array, Any]:
+        obs, state = self._env.reset(key, params)
+        return self._one_hot(obs), state
+
+    def step(self, key: jax.Array, state: Any, action: Any, params: Any = None) -> tuple[Any, ...]:
+        obs, state, reward, terminated, truncated, info = self._env.step(key, state, action, params)
+        info = {**info, "final_observation": self._one_hot(info["final_observation"])}
+        return self._one_hot(obs), state, reward, terminated, truncated, info
+
+    @property
+    def name(self) -> str:
+        return f"OneHotObservation({getattr(self._env, 'name', type(self._env).__name__)})"
+
+
+def vector_observations(env: Any, env_params: Any) -> Any:
+    """`env` itself, or wrapped in `OneHotObservation` when its observations are Discrete."""
+    if isinstance(env.observation_space(env_params), spaces.Discrete):
+        return OneHotObservation(env, env_params)
+    return env
