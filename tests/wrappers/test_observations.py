@@ -26,13 +26,18 @@ def _scan(env, params, actions, seed):
     return obs, jax.lax.scan(step, state, (jnp.asarray(actions), keys))[1]
 
 
+# Built and jitted once: each example reuses the two compiled rollouts.
+LAKE, LAKE_PARAMS = gymnax.make("FrozenLake-misc")
+ONE_HOT_LAKE = OneHotObservation(LAKE, LAKE_PARAMS)
+_jitted_scan = jax.jit(_scan, static_argnums=0)
+
+
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 2**16), actions=st.lists(st.integers(0, 3), min_size=60, max_size=60))
 def test_one_hot_steps_like_gymnax_frozen_lake(seed, actions):
     """Same keys, same actions: the one-hot env's observations are gymnax's, one-hot; rewards and ends equal."""
-    inner, params = gymnax.make("FrozenLake-misc")
-    reference = jax.jit(_scan, static_argnums=0)(inner, params, actions, seed)
-    one_hot = jax.jit(_scan, static_argnums=0)(OneHotObservation(inner, params), params, actions, seed)
+    reference = _jitted_scan(LAKE, LAKE_PARAMS, jnp.asarray(actions), seed)
+    one_hot = _jitted_scan(ONE_HOT_LAKE, LAKE_PARAMS, jnp.asarray(actions), seed)
     first, (obs, reward, terminated, truncated, final) = reference
     np.testing.assert_array_equal(one_hot[0], np.eye(16)[first])
     np.testing.assert_array_equal(one_hot[1][0], np.eye(16)[obs])
