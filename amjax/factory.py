@@ -100,7 +100,7 @@ def wrap(
             "(a subclass of gymnax.environments.environment.Environment has it), with env_params given if it has "
             "no default_params"
         )
-    keywords = {n: p.default for n, p in inspect.signature(make).parameters.items() if n not in ("env_id", "spec")}
+    keywords = _measure_keywords()
     unknown = sorted(set(options) - set(keywords))
     if unknown:
         raise TypeError(f"{', '.join(unknown)}: not a measurement option; allowed: {', '.join(keywords)}, spec")
@@ -168,17 +168,21 @@ def _wrapped(env_id: str, env: Any, env_params: Any, arguments: dict[str, Any]) 
     return env, spec.measure_params(env, env_params)
 
 
+def _measure_keywords() -> dict[str, Any]:
+    """`make`'s measurement keywords (all but `env_id` and `spec`) and their defaults."""
+    return {name: p.default for name, p in inspect.signature(make).parameters.items() if name not in ("env_id", "spec")}
+
+
 def _make_from_spec(env_id: str, env: Any, env_params: Any, arguments: dict[str, Any]) -> tuple[Environment, Any]:
     """`make(env_id, spec=spec)` (or `wrap(env, spec=spec)`): the spec checked and built, once no other
     measurement argument is given."""
     spec = arguments["spec"]
     if not isinstance(spec, MeasureSpec):
         raise TypeError(f"spec: got {type(spec).__name__}; allowed: a MeasureSpec (or an agent config)")
-    defaults = {name: p.default for name, p in inspect.signature(make).parameters.items() if name != "env_id"}
     given = [
         name
-        for name, default in defaults.items()
-        if name != "spec" and not (arguments[name] is default or _equal(arguments[name], default))
+        for name, default in _measure_keywords().items()
+        if not (arguments[name] is default or _equal(arguments[name], default))
     ]
     if given:
         raise ValueError(

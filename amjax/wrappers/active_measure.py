@@ -68,6 +68,7 @@ from amjax.wrappers.instruments import (
     feature_owner,
     served_readings,
 )
+from amjax.wrappers.observations import env_name
 
 MODES = ("last", "random", "noisy")
 EXTRA_OBS = ("since_measured", "last_action")
@@ -297,7 +298,7 @@ class ActiveMeasure(GymnaxWrapper):
 
     @property
     def name(self) -> str:
-        return f"ActiveMeasure({getattr(self._env, 'name', type(self._env).__name__)})"
+        return f"ActiveMeasure({env_name(self._env)})"
 
     # -- dynamics -------------------------------------------------------------------------------
 

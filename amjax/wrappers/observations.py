@@ -12,6 +12,11 @@ from gymnax.environments import spaces
 from gymnax.wrappers.purerl import GymnaxWrapper
 
 
+def env_name(env: Any) -> str:
+    """`env.name` (gymnax's environments have one), else its class name (an env of the user's own may not)."""
+    return getattr(env, "name", type(env).__name__)
+
+
 class OneHotObservation(GymnaxWrapper):
     """`env` with its Discrete(n) observations (and `info["final_observation"]`) as float32 one-hot vectors;
     `observation_space` is Box(0, 1, (n,)). Everything else is `env`'s."""
@@ -40,7 +45,7 @@ class OneHotObservation(GymnaxWrapper):
 
     @property
     def name(self) -> str:
-        return f"OneHotObservation({getattr(self._env, 'name', type(self._env).__name__)})"
+        return f"OneHotObservation({env_name(self._env)})"
 
 
 def vector_observations(env: Any, env_params: Any) -> Any:

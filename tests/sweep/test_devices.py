@@ -116,10 +116,14 @@ def test_mulhi_lowering_of_sharded_programs_is_exact(bits, signed, scalar_side, 
     np.testing.assert_array_equal(np.asarray(got), expected)
 
 
+def _clean_environ() -> dict[str, str]:
+    """This process's environment without the caller's JAX device settings, for a fresh interpreter."""
+    return {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
+
+
 def _python(code: str, **env: str) -> str:
     """Run `code` in a fresh interpreter, without the caller's JAX device settings; its stdout."""
-    clean = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
-    done = subprocess.run([sys.executable, "-c", code], env={**clean, **env}, capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-c", code], env={**_clean_environ(), **env}, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-3000:]
     return done.stdout
 
@@ -189,8 +193,7 @@ def test_sharded_dqn_with_instruments_compiles(tmp_path):
     command = [sys.executable, "-m", "train", "sweep", "--env", "CartPole-v0", "--agent", "dqn", "--cost", "0.1"]
     command += ["--seeds", "2", "--steps", "1024", "--eval-every", "1024", "--eval-episodes", "1", "--no-progress"]
     command += ["--set", "instruments=default", "--set", "learning_starts=256", "--out", str(out)]
-    clean = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
-    done = subprocess.run(command, env=clean, capture_output=True, text=True, timeout=600)
+    done = subprocess.run(command, env=_clean_environ(), capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "2 CPU devices" in done.stdout or len(os.sched_getaffinity(0)) < 2
     results = pd.read_parquet(out / "results.parquet")
