@@ -15,8 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from amjax.agents.networks import TORSOS, pick_torso
 from amjax.envs.registry import make_env
-from amjax.validation import check_positive_int, check_real, check_whole_number, is_traced
+from amjax.validation import check_choice, check_positive_int, check_real, check_whole_number, is_traced
 from amjax.wrappers.instruments import resolve_instruments
 from amjax.wrappers.spec import MEASURE_HEADS, MeasureSpec, static
 
@@ -66,6 +67,9 @@ class AgentConfig(MeasureSpec):
     # groups, `vmap` within one; 0: all at once). Speed only: a group's working set can stay in a core's cache.
     # Results agree with ungrouped training to float rounding (which a long run amplifies, as any change of batch).
     train_group: int = static(0)
+    # The network's body: "auto" (a CNN for an image observation [height, width, channels], an MLP otherwise),
+    # "mlp" or "cnn" (`networks.pick_torso`; the agent's `hidden` widths are the Dense layers after either).
+    torso: str = static("auto")
 
     # The allowed range of each traced field of a subclass: "positive" (> 0), "nonnegative" (>= 0), "unit"
     # ([0, 1]), "probability" ((0, 1)) or "count" (whole numbers >= 0); every value must be finite.
@@ -128,6 +132,10 @@ class AgentConfig(MeasureSpec):
                 f"{' and '.join(self.ACTION_SPACES)} (for Box control use PPO: agent ppo or ppo-rnn)"
             )
         self.check_measure(self.env_id, env, env_params)
+        check_choice("torso", self.torso, TORSOS)
+        if self.torso == "cnn":  # "auto" and "mlp" take any observation
+            wrapped, inner_params = self.wrap_env(self.env_id, env, env_params)
+            pick_torso(self.torso, wrapped.observation_space(self.measure_params(wrapped, inner_params)).shape)
         for name, kind in self.TRACED_BOUNDS.items():
             value = getattr(self, name)
             if is_traced(value):

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from amjax.agents.networks import DuelingQNetwork
+from amjax.agents.networks import VECTOR_TORSO, DuelingQNetwork, Torso
 from amjax.agents.q_learning import (
     QLearningConfig,
     epsilon,
@@ -65,9 +65,9 @@ class DQNState:
     env_steps: jax.Array
 
 
-def network(config: DQNConfig, action_space: Any) -> DuelingQNetwork:
+def network(config: DQNConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -> DuelingQNetwork:
     return DuelingQNetwork(
-        action_space.n, tuple(config.hidden), config.activation, config.dueling, config.factored_masks
+        action_space.n, tuple(config.hidden), config.activation, config.dueling, config.factored_masks, torso
     )
 
 

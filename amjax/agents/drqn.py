@@ -40,7 +40,7 @@ import optax
 from flax import struct
 
 from amjax.agents.config import static
-from amjax.agents.networks import CELLS, RecurrentQNetwork, zero_carry
+from amjax.agents.networks import CELLS, VECTOR_TORSO, RecurrentQNetwork, Torso, zero_carry
 from amjax.agents.q_learning import (
     QLearningConfig,
     epsilon,
@@ -121,7 +121,7 @@ class DRQNState:
     env_steps: jax.Array
 
 
-def network(config: DRQNConfig, action_space: Any) -> RecurrentQNetwork:
+def network(config: DRQNConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -> RecurrentQNetwork:
     return RecurrentQNetwork(
         action_space.n,
         tuple(config.hidden),
@@ -130,6 +130,7 @@ def network(config: DRQNConfig, action_space: Any) -> RecurrentQNetwork:
         config.activation,
         config.dueling,
         config.factored_masks,
+        torso,
     )
 
 

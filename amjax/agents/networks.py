@@ -7,6 +7,7 @@ normal with the orthogonal initialiser's variance (gain^2 / fan_in) behaves the 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
@@ -26,17 +27,76 @@ def scaled_init(gain: float) -> nn.initializers.Initializer:
 
 
 class MLP(nn.Module):
-    """Dense layers with an activation after each."""
+    """Dense layers with an activation after each, on the observation flattened (its last `obs_ndim` axes; the
+    axes before them are batch axes)."""
 
     hidden: Sequence[int]
     activation: str = "tanh"
+    obs_ndim: int = 1
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         act = ACTIVATIONS[self.activation]
+        if self.obs_ndim > 1:
+            x = x.reshape(*x.shape[: x.ndim - self.obs_ndim], -1)
         for width in self.hidden:
             x = act(nn.Dense(width, kernel_init=scaled_init(2**0.5))(x))
         return x
+
+
+CONV_KERNEL = 3  # MinAtar's network: 16 filters of 3 x 3, stride 1, no padding (Young & Tian 2019, section 4)
+CONV_FEATURES = 16
+
+
+class ConvTorso(nn.Module):
+    """The MinAtar paper's network body for an image [height, width, channels] with any batch axes before it: one
+    convolution (16 filters of 3 x 3, stride 1, no padding; Young & Tian 2019, "MinAtar", section 4), flattened,
+    then Dense layers `hidden` (the paper's one layer of 128 units is `hidden=(128,)`)."""
+
+    hidden: Sequence[int]
+    activation: str = "relu"
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        conv = nn.Conv(CONV_FEATURES, (CONV_KERNEL, CONV_KERNEL), padding="VALID", kernel_init=scaled_init(2**0.5))
+        x = ACTIVATIONS[self.activation](conv(x))
+        return MLP(self.hidden, self.activation, obs_ndim=3)(x)
+
+
+TORSOS = ("auto", "mlp", "cnn")
+
+
+@dataclasses.dataclass(frozen=True)
+class Torso:
+    """The body every network puts before its heads: "mlp" (the observation flattened, then Dense layers) or "cnn"
+    (`ConvTorso`, for images); `obs_ndim`: the observation's own axes (1 for a vector, 3 for an image)."""
+
+    kind: str = "mlp"
+    obs_ndim: int = 1
+
+    def build(self, hidden: Sequence[int], activation: str, name: str | None = None) -> nn.Module:
+        if self.kind == "cnn":
+            return ConvTorso(hidden, activation, name=name)
+        return MLP(hidden, activation, self.obs_ndim, name=name)
+
+
+VECTOR_TORSO = Torso()  # the default body: an MLP on a vector observation
+
+
+def pick_torso(torso: str, obs_shape: tuple[int, ...]) -> Torso:
+    """The `Torso` for `obs_shape` (one observation's): `torso` "auto" takes "cnn" for an image [height, width,
+    channels] at least `CONV_KERNEL` pixels on a side, else "mlp"; "mlp" or "cnn" force one. ValueError for "cnn" on
+    an observation that is not such an image, or for another name."""
+    if torso not in TORSOS:
+        raise ValueError(f"torso: got {torso!r}; allowed values: {', '.join(map(repr, TORSOS))}")
+    image = len(obs_shape) == 3 and min(obs_shape[:2]) >= CONV_KERNEL
+    if torso == "cnn" and not image:
+        raise ValueError(
+            f"torso: 'cnn' needs an image observation [height, width, channels] at least {CONV_KERNEL} pixels on a "
+            f"side, but the observation's shape is {tuple(obs_shape)}; allowed here: 'auto' or 'mlp'"
+        )
+    kind = "cnn" if torso == "cnn" or (torso == "auto" and image) else "mlp"
+    return Torso(kind, len(obs_shape))
 
 
 @jax.custom_vjp
@@ -142,28 +202,30 @@ class ActorCritic(nn.Module):
     activation: str = "tanh"
     shared: bool = False
     measure_prior: Any = 0.5  # the initial policy's probability of measuring (`policy_head`)
+    torso: Torso = Torso()
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> tuple[Any, jax.Array]:
-        actor = MLP(self.hidden, self.activation, name="actor_torso")(obs)
-        critic = actor if self.shared else MLP(self.hidden, self.activation, name="critic_torso")(obs)
+        actor = self.torso.build(self.hidden, self.activation, name="actor_torso")(obs)
+        critic = actor if self.shared else self.torso.build(self.hidden, self.activation, name="critic_torso")(obs)
         policy = policy_head(self, actor, self.distribution, dense=NarrowDense, measure_prior=self.measure_prior)
         value = nn.Dense(1, kernel_init=scaled_init(1.0), name="value")(critic)
         return policy, jnp.squeeze(value, -1)
 
 
 class DuelingQNetwork(nn.Module):
-    """Q(s, a) = V(s) + A(s, a) - mean_a A(s, a) on an MLP torso (Wang et al. 2016)."""
+    """Q(s, a) = V(s) + A(s, a) - mean_a A(s, a) on a torso (an MLP or a CNN; Wang et al. 2016)."""
 
     num_actions: int
     hidden: Sequence[int] = (64, 64)
     activation: str = "relu"
     dueling: bool = True
     factored_masks: int = 0  # > 0: a factored head over (control, measure mask), this many masks
+    torso: Torso = Torso()
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        x = MLP(self.hidden, self.activation)(obs)
+        x = self.torso.build(self.hidden, self.activation)(obs)
         return dueling_head(x, self.num_actions, self.dueling, head=NarrowDense, factored_masks=self.factored_masks)
 
 
@@ -243,18 +305,20 @@ def cell_step(cell: str, recurrent_kernel: jax.Array, carry: Any, inputs: jax.Ar
 
 
 class RecurrentCore(nn.Module):
-    """MLP torso -> one GRU or LSTM step; outputs [torso features, cell output] (a skip connection: the heads see
-    the current observation at once, without waiting for the cell's gates to open, and the memory beside it).
+    """Torso (an MLP or a CNN) -> one GRU or LSTM step; outputs [torso features, cell output] (a skip connection:
+    the heads see the current observation at once, without waiting for the cell's gates to open, and the memory
+    beside it).
     The cell's input and recurrent kernels are fused across gates and use `scaled_init` (QR-free, see above)."""
 
     hidden: Sequence[int] = (64,)
     rnn_size: int = 64
     cell: str = "gru"
     activation: str = "relu"
+    body: Torso = Torso()  # builds the submodule named "torso", as saved parameters name it
 
     def setup(self) -> None:
         gates = (4 if self.cell == "lstm" else 3) * self.rnn_size
-        self.torso = MLP(self.hidden, self.activation)
+        self.torso = self.body.build(self.hidden, self.activation)
         self.input_projection = nn.Dense(gates, kernel_init=scaled_init(1.0))
         self.recurrent_kernel = self.param("recurrent_kernel", scaled_init(1.0), (self.rnn_size, gates))
 
@@ -319,9 +383,10 @@ class RecurrentQNetwork(nn.Module):
     activation: str = "relu"
     dueling: bool = True
     factored_masks: int = 0
+    torso: Torso = Torso()
 
     def setup(self) -> None:
-        self.core = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)
+        self.core = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation, self.torso)
         self.head = DuelingHead(self.num_actions, self.dueling, self.factored_masks)
 
     def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, jax.Array]:
@@ -343,9 +408,10 @@ class RecurrentActorCritic(nn.Module):
     cell: str = "gru"
     activation: str = "tanh"
     measure_prior: Any = 0.5
+    torso: Torso = Torso()
 
     def setup(self) -> None:
-        self.core = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation)
+        self.core = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation, self.torso)
         self.heads = ActorCriticHeads(self.distribution, self.measure_prior)
 
     def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, tuple[jax.Array, jax.Array]]:

@@ -17,7 +17,7 @@ from flax import struct
 
 from amjax import strategy
 from amjax.agents.config import static
-from amjax.agents.networks import ActorCritic
+from amjax.agents.networks import VECTOR_TORSO, ActorCritic, Torso
 from amjax.agents.optim import minibatch_step
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
@@ -58,13 +58,14 @@ class PPOState:
     updates: jax.Array
 
 
-def network(config: PPOConfig, action_space: Any) -> ActorCritic:
+def network(config: PPOConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -> ActorCritic:
     return ActorCritic(
         policy_distribution(config, action_space),
         tuple(config.hidden),
         config.activation,
         config.shared_network,
         config.measure_prior,
+        torso,
     )
 
 

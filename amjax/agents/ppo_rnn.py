@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from amjax.agents.config import AgentConfig, static
-from amjax.agents.networks import CELLS, RecurrentActorCritic, zero_carry
+from amjax.agents.networks import CELLS, VECTOR_TORSO, RecurrentActorCritic, Torso, zero_carry
 from amjax.agents.optim import minibatch_step
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
@@ -75,7 +75,7 @@ class PPORNNState:
     updates: jax.Array
 
 
-def network(config: PPORNNConfig, action_space: Any) -> RecurrentActorCritic:
+def network(config: PPORNNConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -> RecurrentActorCritic:
     return RecurrentActorCritic(
         policy_distribution(config, action_space),
         tuple(config.hidden),
@@ -83,6 +83,7 @@ def network(config: PPORNNConfig, action_space: Any) -> RecurrentActorCritic:
         config.cell,
         config.activation,
         config.measure_prior,
+        torso,
     )
 
 

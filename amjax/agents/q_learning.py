@@ -132,7 +132,7 @@ def n_step_transitions(window: dict[str, jax.Array], n: int, gamma: jax.Array) -
     for k in range(n):  # n is static and small
         reward = reward + alive * scale * window["reward"][k : k + T]
         scale = scale * gamma
-        keep = alive[..., None] > 0
+        keep = (alive > 0).reshape(alive.shape + (1,) * (next_obs.ndim - alive.ndim))  # over the obs's axes
         next_obs = jnp.where(keep, window["next_obs"][k : k + T], next_obs)
         discount = jnp.where(alive > 0, scale * (1.0 - window["terminated"][k : k + T]), discount)
         alive = alive * (1.0 - window["done"][k : k + T])

@@ -1,6 +1,6 @@
 """The training driver every algorithm shares: updates -> periodic greedy evaluation -> reduced metrics.
 
-An algorithm supplies `network(config, action_space)`, `init(config, setup, key)`, `update(config, setup, state)`
+An algorithm supplies `network(config, action_space, torso)`, `init(config, setup, key)`, `update(config, setup, state)`
 (one iteration: collect + learn), `params(state)` (its network parameters) and `greedy(config, setup, params,
 num_envs)` (its evaluation policy). `Algorithm.setup(config)` builds the env and network once per compiled program
 and every function gets them. The driver scans `updates_per_eval` updates, evaluates `eval_episodes` test episodes,
@@ -23,6 +23,7 @@ from flax import struct
 
 from amjax import strategy
 from amjax.agents.config import AgentConfig
+from amjax.agents.networks import Torso, pick_torso
 from amjax.agents.rollout import ActFn, EnvBatch, FinishedEpisodes, fast_key, reset_envs, step_envs
 from amjax.agents.setup import Setup, training_env
 from amjax.batching import in_groups
@@ -84,7 +85,7 @@ class Algorithm:
 
     name: str
     config_type: type[AgentConfig]
-    network: Callable[[AgentConfig, Any], nn.Module]  # (config, env action space) -> its network
+    network: Callable[[AgentConfig, Any, Torso], nn.Module]  # (config, env action space, body) -> its network
     init: Callable[[AgentConfig, Setup, jax.Array], Any]  # (config, setup, key) -> algorithm state
     update: Callable[[AgentConfig, Setup, Any], tuple[Any, UpdateStats]]  # (config, setup, state) -> (state, stats)
     greedy: Callable[[AgentConfig, Setup, Any, int], Policy]  # (config, setup, params, num_envs) -> policy
@@ -94,7 +95,8 @@ class Algorithm:
         """The env and network of `config` (call once per compiled program; the traced cost and noise go into the
         env params)."""
         env, env_params, max_steps = training_env(config)
-        return Setup(env, env_params, max_steps, self.network(config, env.action_space(env_params)))
+        torso = pick_torso(config.torso, env.observation_space(env_params).shape)
+        return Setup(env, env_params, max_steps, self.network(config, env.action_space(env_params), torso))
 
 
 def evaluate(

@@ -6,7 +6,10 @@ from collections.abc import Callable
 from typing import Any
 
 import gymnax
+import jax.numpy as jnp
+from gymnax.environments import spaces
 from gymnax.environments.environment import Environment
+from gymnax.wrappers.purerl import GymnaxWrapper
 
 from amjax.envs import brax_env
 
@@ -40,6 +43,43 @@ def _cstr() -> tuple[Environment, Any]:
     return env, env.default_params
 
 
+class CorrectedBounds(GymnaxWrapper):
+    """`env` with the observation bounds `bounds(space) -> (low, high)` in place of those it declares; the rest is
+    `env`'s own."""
+
+    def __init__(self, env: Environment, bounds: Callable[[spaces.Box], tuple[Any, Any]]):
+        super().__init__(env)
+        self._bounds = bounds
+
+    def observation_space(self, params: Any = None) -> spaces.Box:
+        space = self._env.observation_space(params)
+        low, high = (jnp.broadcast_to(jnp.asarray(b, jnp.float32), space.shape) for b in self._bounds(space))
+        return spaces.Box(low, high, space.shape, jnp.float32)
+
+
+UNBOUNDED = float(jnp.finfo(jnp.float32).max)  # gymnax's "unbounded"
+# gymnax 1.0.1 declares observation bounds that two of its envs' own observations leave, which the wrapper's mode
+# "random" samples within and mode "noisy" clips to, and Gymnasium's `check_env` rejects; corrected from each
+# env's `get_obs`:
+# - MemoryChain-bsuite (bsuite/memory_chain.py): the context bits are shown as 2c - 1 in {-1, 1} (declared low 0);
+# - GaussianBandit-misc (misc/gaussian_bandit.py): [last reward (Gaussian: unbounded), one-hot action (2), time
+#   normalised from [0, 100] to [-1, 1] (declared low 0)].
+_GYMNAX_BOUNDS: dict[str, Callable[[spaces.Box], tuple[Any, Any]]] = {
+    "MemoryChain-bsuite": lambda space: (-1.0, space.high),
+    "GaussianBandit-misc": lambda space: (
+        jnp.array([-UNBOUNDED, 0.0, 0.0, -1.0]),
+        jnp.array([UNBOUNDED, 1.0, 1.0, UNBOUNDED]),
+    ),
+}
+
+
+def _gymnax(env_id: str) -> tuple[Environment, Any]:
+    env, params = gymnax.make(env_id)
+    if env_id in _GYMNAX_BOUNDS:
+        env = CorrectedBounds(env, _GYMNAX_BOUNDS[env_id])
+    return env, params
+
+
 _AMJAX_ENVS: dict[str, EnvFactory] = {
     "CartPole-v0": _cartpole_v0,
     "LunarLander-v3": _lunar_lander,
@@ -69,7 +109,7 @@ def make_env(env_id: str) -> tuple[Environment, Any]:
         if env_id in table:
             return table[env_id]()
     if env_id in gymnax.registered_envs:
-        return gymnax.make(env_id)
+        return _gymnax(env_id)
     if isinstance(env_id, str) and env_id.startswith(brax_env.PREFIX):
         return brax_env.make_brax(env_id)
     raise ValueError(

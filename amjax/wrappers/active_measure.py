@@ -7,8 +7,12 @@ by `mode`:
 - "last": the remembered observation (the paper's setting);
 - "random": a sample of the observation space (uniform where bounded, as Gymnasium's `Box.sample`);
 - "noisy": the true observation + N(0, noise_std^2), clipped to the space's bounds.
-With `flag=True` a 1 (fresh) or 0 (stale) is appended to the observation. A reset, including the auto-reset inside
-`step`, counts as a free measurement of the first observation. The reward is `raw_reward - cost * measured`.
+With `flag=True` a 1 (fresh) or 0 (stale) is appended to the observation. Observations are vectors [d] or images
+[height, width, channels] (`amjax.make` gives a 2-D observation a channel axis, `observations.py`): an image
+keeps its shape and everything the wrapper appends (the flag and the options' features below) is added as
+constant channels, one per value, so a convolutional torso reads them at every pixel. A reset, including the
+auto-reset inside `step`, counts as a free measurement of the first observation. The reward is
+`raw_reward - cost * measured`.
 
 Options beyond the paper (each off by default; off, the state, observation and reward are the paper's):
 - `extra_obs`: features appended after the flag, giving a memoryless agent what it cannot remember.
@@ -150,6 +154,15 @@ def sample_box(key: jax.Array, low: jax.Array, high: jax.Array) -> jax.Array:
     )
 
 
+def append_features(obs: Any, features: Any, xp: Any = jnp) -> Any:
+    """`features` [m] after `obs`: concatenated to a vector, or as m constant channels of an image [h, w, c]. `xp`:
+    the array library (jax.numpy, or numpy for the Gymnasium wrapper)."""
+    features = xp.asarray(features, obs.dtype)
+    if obs.ndim == 1:
+        return xp.concatenate([obs, features])
+    return xp.concatenate([obs, xp.broadcast_to(features, (*obs.shape[:-1], features.shape[0]))], -1)
+
+
 class ActiveMeasure(GymnaxWrapper):
     """Active-measure wrapper for a gymnax environment (see the module docstring)."""
 
@@ -196,13 +209,14 @@ class ActiveMeasure(GymnaxWrapper):
                 f"env: the active-measure wrapper needs a Box observation space, got "
                 f"{type(obs_space).__name__}; allowed: Box"
             )
-        if (flag or extra_obs or budgeted or instruments or cost_conditioned) and len(obs_space.shape) != 1:
+        if (flag or extra_obs or budgeted or instruments or cost_conditioned) and len(obs_space.shape) not in (1, 3):
             raise TypeError(
-                f"flag=True (and extra_obs, budgeted, instruments, cost_conditioned) need a 1-D observation, but its "
-                f"shape is "
-                f"{obs_space.shape}; use flag=False or flatten the observation"
+                f"flag=True (and extra_obs, budgeted, instruments, cost_conditioned) need a vector or an image "
+                f"[height, width, channels] observation, but its shape is {obs_space.shape}; wrap it with "
+                "amjax.make or amjax.wrap (they give a 2-D observation a channel axis), or use flag=False"
             )
-        self.instruments = check_instruments(instruments, obs_space.shape[0] if instruments else 0)
+        # An instrument reads features: entries of a vector, channels of an image.
+        self.instruments = check_instruments(instruments, obs_space.shape[-1] if instruments else 0)
         self._owner = feature_owner(self.instruments)  # [features]: the instrument reading each
 
     @property
@@ -254,10 +268,10 @@ class ActiveMeasure(GymnaxWrapper):
         low, high = self._obs_bounds(params)
         if self.flag:
             k = self.num_instruments
-            low, high = jnp.append(low, jnp.zeros(k)), jnp.append(high, jnp.ones(k))
+            low, high = append_features(low, jnp.zeros(k)), append_features(high, jnp.ones(k))
         if self._appends:
             extra_low, extra_high = self._extra_bounds(params)
-            low, high = jnp.concatenate([low, extra_low]), jnp.concatenate([high, extra_high])
+            low, high = append_features(low, extra_low), append_features(high, extra_high)
         return spaces.Box(low, high, low.shape, jnp.float32)
 
     def _extra_bounds(self, params: MeasureParams) -> tuple[jax.Array, jax.Array]:
@@ -320,8 +334,9 @@ class ActiveMeasure(GymnaxWrapper):
         obs = jnp.asarray(obs, jnp.float32)
         if not self.flag:
             return obs
-        if self.instruments:  # one flag per instrument
-            return jnp.concatenate([obs, jnp.broadcast_to(jnp.asarray(fresh, jnp.float32), (len(self.instruments),))])
+        if self.instruments or obs.ndim > 1:  # one flag per instrument; an image's as channels
+            flags = jnp.broadcast_to(jnp.asarray(fresh, jnp.float32), (self.num_instruments,))
+            return append_features(obs, flags)
         # Pad, then write the flag with a select: XLA fuses this with the surrounding selects, whereas a
         # concatenate with a traced flag is a separate, unvectorised pass over a [batch, d + 1] array on CPU
         # (it made a batch of wrapped CartPole steps 1.7x slower than the plain env).
@@ -388,7 +403,7 @@ class ActiveMeasure(GymnaxWrapper):
         if self.cost_conditioned:
             seen = scaled_cost(counters["episode_cost"], params.cost_scale_low, params.cost_scale_high)
             features.append(jnp.reshape(seen, (1,)))
-        return jnp.concatenate([obs, *features])
+        return append_features(obs, jnp.concatenate(features))
 
     @partial(jax.jit, static_argnames=("self",))
     def reset(self, key: jax.Array, params: MeasureParams | None = None) -> tuple[jax.Array, MeasureState]:

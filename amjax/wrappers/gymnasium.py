@@ -27,7 +27,13 @@ from gymnax.environments import spaces as gymnax_spaces
 
 from amjax.cores import TreeLayout, jit_one_kernel
 from amjax.validation import check_bool, check_choice, check_positive_int, check_real, check_whole_number
-from amjax.wrappers.active_measure import REWARD_TIMINGS, UNBOUNDED, check_extra_obs, check_measure_setup
+from amjax.wrappers.active_measure import (
+    REWARD_TIMINGS,
+    UNBOUNDED,
+    append_features,
+    check_extra_obs,
+    check_measure_setup,
+)
 from amjax.wrappers.instruments import check_instrument_values, check_instruments, feature_owner, resolve_instruments
 from amjax.wrappers.spec import MeasureSpec, is_given
 
@@ -125,8 +131,10 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
     wrapping does not change the env's randomness.
 
     Args:
-      env: a Gymnasium env with a Discrete or 1-D Box action space and a Box observation space
-        (1-D if `flag`).
+      env: a Gymnasium env with a Discrete or 1-D Box action space and a Box observation space: a vector, or
+        (with `flag` or the options) an image [height, width, channels] too, which keeps its shape and gains the
+        appended values as constant channels, as in the JAX wrapper (a 2-D observation needs its channel axis
+        first: `gymnasium.wrappers.ReshapeObservation(env, (height, width, 1))`).
       cost: charged per measurement (one finite number >= 0).
       mode: "last", "random" or "noisy".
       flag: append the measured flag to the observation.
@@ -180,12 +188,15 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
                 f"env: the active-measure wrapper needs a Box observation space, got "
                 f"{type(inner_obs).__name__}; allowed: Box"
             )
-        if (self.flag or self.extra_obs or self.budget is not None or instruments) and len(inner_obs.shape) != 1:
+        appends = self.flag or self.extra_obs or self.budget is not None or instruments
+        if appends and len(inner_obs.shape) not in (1, 3):
             raise TypeError(
-                f"flag=True (and extra_obs, budget, instruments) need a 1-D observation, but its shape is "
-                f"{inner_obs.shape}; use flag=False or flatten the observation"
+                f"flag=True (and extra_obs, budget, instruments) need a vector or an image [height, width, channels] "
+                f"observation, but its shape is {inner_obs.shape}; give a 2-D one a channel axis "
+                "(gymnasium.wrappers.ReshapeObservation), or use flag=False"
             )
-        self.instruments = check_instruments(instruments, inner_obs.shape[0] if instruments else 0)
+        # An instrument reads features: entries of a vector, channels of an image.
+        self.instruments = check_instruments(instruments, inner_obs.shape[-1] if instruments else 0)
         # Measure choices per step (1: the paper's switch, which reads every feature) and the one reading each
         # feature.
         self._readings = max(1, len(self.instruments))
@@ -220,17 +231,25 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         with np.errstate(over="ignore"):  # float64 bounds beyond float32's range become +-inf
             self._low = inner_obs.low.astype(np.float32)
             self._high = inner_obs.high.astype(np.float32)
-        low, high = self._low, self._high
-        if self.flag:
-            low, high = np.append(low, np.zeros(self._readings)), np.append(high, np.ones(self._readings))
+        extra_low, extra_high = (
+            [np.zeros(self._readings)] if self.flag else [],
+            [np.ones(self._readings)] if self.flag else [],
+        )
         for name in self.extra_obs:
             if name == "last_action" and isinstance(inner_action, gym_spaces.Box):
-                low, high = np.append(low, inner_action.low), np.append(high, inner_action.high)
+                extra_low.append(inner_action.low)
+                extra_high.append(inner_action.high)
             else:
                 size = self._num_controls if name == "last_action" else self._readings
-                low, high = np.append(low, np.zeros(size)), np.append(high, np.ones(size))
+                extra_low.append(np.zeros(size))
+                extra_high.append(np.ones(size))
         if self.budget is not None:
-            low, high = np.append(low, 0.0), np.append(high, 1.0)
+            extra_low.append(np.zeros(1))
+            extra_high.append(np.ones(1))
+        low, high = self._low, self._high
+        if extra_low:
+            low = append_features(low, np.concatenate(extra_low), np)
+            high = append_features(high, np.concatenate(extra_high), np)
         self.observation_space = gym_spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
         self._last_obs: np.ndarray | None = None
         self._view_rng: np.random.Generator | None = None
@@ -279,7 +298,7 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
 
     def _observe(self, obs: np.ndarray, fresh: bool) -> np.ndarray:
         """`obs`, the flag, then the options' features (as the JAX wrapper lays them out)."""
-        features = [self._with_flag(obs, fresh)]
+        features = []
         for name in self.extra_obs:
             if name == "since_measured":
                 features.append(np.minimum(np.log1p(self._since) / np.log1p(self._horizon), 1.0))
@@ -288,7 +307,8 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
         if self.budget is not None:
             left = 1.0 - self._used / self.budget if self.budget > 0 else 0.0
             features.append([min(max(left, 0.0), 1.0)])
-        return np.concatenate(features, dtype=np.float32) if len(features) > 1 else features[0]
+        shown = self._with_flag(obs, fresh)
+        return append_features(shown, np.concatenate(features, dtype=np.float32), np) if features else shown
 
     def split_action(self, action: Any) -> tuple[Any, np.ndarray]:
         """(control for the inner env, the readings requested: one bool per instrument, or one) of a wrapped
@@ -303,7 +323,7 @@ class ActiveMeasureWrapper(gymnasium.Wrapper[np.ndarray, Any, Any, Any]):
     def _with_flag(self, obs: np.ndarray, fresh: Any) -> np.ndarray:
         # A copy either way: a caller mutating the observation must not touch the memory.
         flags = np.broadcast_to(np.asarray(fresh, np.float32), (self._readings,))
-        return np.append(obs, flags) if self.flag else obs.copy()
+        return append_features(obs, flags, np) if self.flag else obs.copy()
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None

@@ -10,9 +10,10 @@ Action encoding (`ActiveMeasure(instruments=...)`):
   (with k = 1 this is the paper's `control + n * measure`);
 - Box(d) control: Box(k + d), `[read_1, ..., read_k, control...]`, instrument j read iff `read_j >= 0.5`.
 
-An instrument is a tuple of observation indices; `instruments` is a tuple of instruments that together hold every
-feature exactly once. `DEFAULT_INSTRUMENTS` names a split for the environments where one is natural;
-`instruments="default"` picks it.
+An instrument is a tuple of observation indices (entries of a vector observation; channels of an image, which an
+instrument reads at every pixel, e.g. one MinAtar object type per channel); `instruments` is a tuple of
+instruments that together hold every feature exactly once. `DEFAULT_INSTRUMENTS` names a split for the
+environments where one is natural; `instruments="default"` picks it.
 """
 
 from __future__ import annotations
@@ -89,7 +90,7 @@ def check_instruments(instruments: Any, obs_size: int) -> tuple[tuple[int, ...],
     if flat != list(range(obs_size)):
         raise ValueError(
             f"instruments: {tuple(result)} must hold each observation index 0..{obs_size - 1} exactly "
-            f"once (the observation has {obs_size} features)"
+            f"once (the observation has {obs_size} features: a vector's entries, an image's channels)"
         )
     return tuple(result)
 

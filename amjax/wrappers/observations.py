@@ -1,6 +1,11 @@
-"""Observations as the active-measure wrapper takes them: vectors. A Discrete(n) observation (gymnax's
-FrozenLake-misc, for one) becomes its one-hot vector of n floats, so the stale flag, staleness features, budgets and
-instruments append to it as to any Box observation, and the agents' MLPs read it."""
+"""Observations as the active-measure wrapper takes them: vectors [d] or images [height, width, channels].
+
+- A Discrete(n) observation (gymnax's FrozenLake-misc, for one) becomes its one-hot vector of n floats, so the stale
+  flag, staleness features, budgets and instruments append to it as to any Box observation, and the agents' MLPs
+  read it.
+- A 2-D observation [height, width] (bsuite's Catch and DeepSea) gains a channel axis, [height, width, 1], so the
+  flag and the other features append to it as constant channels, as to any image (MinAtar's [10, 10, C]).
+"""
 
 from __future__ import annotations
 
@@ -48,8 +53,47 @@ class OneHotObservation(GymnaxWrapper):
         return f"OneHotObservation({env_name(self._env)})"
 
 
-def vector_observations(env: Any, env_params: Any) -> Any:
-    """`env` itself, or wrapped in `OneHotObservation` when its observations are Discrete."""
-    if isinstance(env.observation_space(env_params), spaces.Discrete):
+class ChannelObservation(GymnaxWrapper):
+    """`env` with its 2-D observations [height, width] (and `info["final_observation"]`) as float32 images
+    [height, width, 1]; `observation_space` is the Box with that shape and the same bounds."""
+
+    def __init__(self, env: Any, env_params: Any = None):
+        super().__init__(env)
+        space = env.observation_space(env.default_params if env_params is None else env_params)
+        if not isinstance(space, spaces.Box) or len(space.shape) != 2:
+            raise TypeError(f"env: ChannelObservation needs a 2-D Box observation space, got {space}")
+
+    @staticmethod
+    def _image(obs: jax.Array) -> jax.Array:
+        return jnp.asarray(obs, jnp.float32)[..., None]
+
+    def observation_space(self, params: Any = None) -> spaces.Box:
+        space = self._env.observation_space(params)
+        low = jnp.broadcast_to(jnp.asarray(space.low, jnp.float32), space.shape)[..., None]
+        high = jnp.broadcast_to(jnp.asarray(space.high, jnp.float32), space.shape)[..., None]
+        return spaces.Box(low, high, low.shape, jnp.float32)
+
+    def reset(self, key: jax.Array, params: Any = None) -> tuple[jax.Array, Any]:
+        obs, state = self._env.reset(key, params)
+        return self._image(obs), state
+
+    def step(self, key: jax.Array, state: Any, action: Any, params: Any = None) -> tuple[Any, ...]:
+        obs, state, reward, terminated, truncated, info = self._env.step(key, state, action, params)
+        info = {**info, "final_observation": self._image(info["final_observation"])}
+        return self._image(obs), state, reward, terminated, truncated, info
+
+    @property
+    def name(self) -> str:
+        return f"ChannelObservation({env_name(self._env)})"
+
+
+def standard_observations(env: Any, env_params: Any) -> Any:
+    """`env` with observations the wrapper and the agents take: a Discrete one as its one-hot vector
+    (`OneHotObservation`), a 2-D one as an image with one channel (`ChannelObservation`), others as they are
+    (vectors, and images [height, width, channels])."""
+    space = env.observation_space(env_params)
+    if isinstance(space, spaces.Discrete):
         return OneHotObservation(env, env_params)
+    if isinstance(space, spaces.Box) and len(space.shape) == 2:
+        return ChannelObservation(env, env_params)
     return env

@@ -39,7 +39,7 @@ from amjax.wrappers.active_measure import (
     check_measure_setup,
 )
 from amjax.wrappers.instruments import check_instruments, resolve_instruments
-from amjax.wrappers.observations import vector_observations
+from amjax.wrappers.observations import standard_observations
 
 MEASURE_HEADS = ("joint", "factored")
 # The traced fields' allowed values: >= 0, finite; "budget" a whole number. The instruments' are checked per
@@ -98,7 +98,7 @@ class MeasureSpec:
         naming the field and its allowed values otherwise."""
         if env is None:
             env, env_params = make_env(env_id)
-        env = vector_observations(env, env_params)
+        env = standard_observations(env, env_params)
         check_bool("flag", self.flag)
         check_bool("vanilla", self.vanilla)
         check_extra_obs(self.extra_obs)
@@ -171,7 +171,7 @@ class MeasureSpec:
         """Check `instruments` and their prices and noise (a tuple of one number >= 0 per instrument, () for zeros,
         or an array whose last axis has that length); returns the number of instruments."""
         instruments = resolve_instruments(env_id, self.instruments)
-        instruments = check_instruments(instruments, env.observation_space(env_params).shape[0])
+        instruments = check_instruments(instruments, env.observation_space(env_params).shape[-1])
         for name in ("instrument_costs", "instrument_noise"):
             value = getattr(self, name)
             if not isinstance(value, tuple | np.ndarray | jax.Array):
@@ -197,7 +197,7 @@ class MeasureSpec:
         names it (and picks its default instruments)."""
         if env is None:
             env, env_params = make_env(env_id)
-        env = vector_observations(env, env_params)  # a Discrete observation as its one-hot vector
+        env = standard_observations(env, env_params)  # Discrete as one-hot, 2-D as a one-channel image
         if self.vanilla:
             return AlwaysMeasured(env, env_params), env_params
         wrapped = ActiveMeasure(

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from gymnax.environments import spaces
 from gymnax.environments.classic_control.cartpole import CartPole
+from gymnax.wrappers.purerl import GymnaxWrapper
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -425,8 +426,21 @@ def test_matrix_box_action_space_is_refused():
         ActiveMeasure(MatrixActionCartPole())
 
 
-def test_flag_needs_a_1d_observation():
-    with pytest.raises(TypeError, match=r"flag=True .*1-D observation.*\(10, 10, 4\).*flag=False"):
-        amjax.make("Breakout-MinAtar")
+def test_flag_needs_a_vector_or_an_image():
+    """An image takes the flag as a channel (tests/wrappers/test_images.py); an observation that is neither a
+    vector nor an image [height, width, channels] is refused, naming the way out."""
+    env, params = amjax.make("Breakout-MinAtar")
+    assert env.observation_space(params).shape == (10, 10, 5)
     env, params = amjax.make("Breakout-MinAtar", flag=False)
     assert env.observation_space(params).shape == (10, 10, 4)
+    volume, volume_params = amjax.make("Breakout-MinAtar", vanilla=True)
+    with pytest.raises(TypeError, match=r"vector or an image .*\(1, 10, 10, 4\).*amjax.make or amjax.wrap"):
+        ActiveMeasure(VolumeObservation(volume), env_params=volume_params)
+
+
+class VolumeObservation(GymnaxWrapper):
+    """An env whose observations are 4-D ([1, 10, 10, 4]): neither a vector nor an image."""
+
+    def observation_space(self, params=None):
+        space = self._env.observation_space(params)
+        return spaces.Box(0.0, 1.0, (1, *space.shape), jnp.float32)

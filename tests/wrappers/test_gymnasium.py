@@ -553,7 +553,7 @@ def test_array_cost_is_refused() -> None:
             gymnasium.spaces.Dict({"a": gymnasium.spaces.Box(-1, 1, (2,))}),
             "allowed: Box",
         ),
-        (gymnasium.spaces.Discrete(2), gymnasium.spaces.Box(-1, 1, (2, 2)), "flag=False"),
+        (gymnasium.spaces.Discrete(2), gymnasium.spaces.Box(-1, 1, (2, 2)), "ReshapeObservation"),
     ],
 )
 def test_unsupported_spaces_are_refused(action_space, observation_space, match: str) -> None:
@@ -570,6 +570,30 @@ def test_image_observations_work_without_the_flag() -> None:
     stale, *_ = wrapped.step(1)
     assert obs.shape == (2, 2) and obs.dtype == np.float32
     np.testing.assert_array_equal(stale, first)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_image_observations_match_the_jax_wrapper(seed: int) -> None:
+    """An image (MinAtar's Breakout exported to Gymnasium, plain) under the NumPy wrapper with the flag and the
+    options: step for step the JAX wrapper's observations (the frame, then constant channels), rewards and ends.
+    ("since_measured" is left out: the exported env's spec has no time limit, which the NumPy wrapper scales by.)"""
+    options = {"extra_obs": ("last_action",), "budget": 3.0, "reward_timing": "on_measure"}
+    gym_env = ActiveMeasureWrapper(to_gymnasium(*made("Breakout-MinAtar", vanilla=True)), cost=0.2, **options)
+    jax_env = to_gymnasium(*made("Breakout-MinAtar", cost=0.2, **options))
+    assert gym_env.observation_space == jax_env.observation_space
+    assert gym_env.observation_space.shape == (10, 10, 4 + 1 + 3 + 1)
+    rng = np.random.default_rng(seed)
+    obs, _ = gym_env.reset(seed=seed)
+    j_obs, _ = jax_env.reset(seed=seed)
+    np.testing.assert_array_equal(obs, j_obs)
+    for _ in range(150):
+        action = int(rng.integers(6))
+        out, j_out = gym_env.step(action), jax_env.step(action)
+        np.testing.assert_allclose(out[0], j_out[0], rtol=0, atol=ATOL)
+        assert out[1] == pytest.approx(j_out[1], abs=1e-5) and out[2:4] == j_out[2:4]
+        assert out[4]["measured"] == j_out[4]["measured"]
+        if out[2] or out[3]:
+            break
 
 
 def test_numpy_wrapper_refuses_bad_actions() -> None:

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import amjax
-from amjax.wrappers.observations import OneHotObservation, vector_observations
+from amjax.wrappers.observations import OneHotObservation, standard_observations
 
 
 def _scan(env, params, actions, seed):
@@ -48,12 +48,12 @@ def test_one_hot_steps_like_gymnax_frozen_lake(seed, actions):
 
 def test_spaces_and_what_is_left_alone():
     inner, params = gymnax.make("FrozenLake-misc")
-    env = vector_observations(inner, params)
+    env = standard_observations(inner, params)
     assert isinstance(env, OneHotObservation)
     assert env.observation_space(params).shape == (16,)
     assert env.action_space(params).n == 4
     cartpole, cartpole_params = gymnax.make("CartPole-v1")
-    assert vector_observations(cartpole, cartpole_params) is cartpole  # Box observations: unchanged
+    assert standard_observations(cartpole, cartpole_params) is cartpole  # Box observations: unchanged
     with pytest.raises(TypeError, match="Discrete observation space"):
         OneHotObservation(cartpole, cartpole_params)
 
