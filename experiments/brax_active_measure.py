@@ -18,7 +18,6 @@ preset from amjax/presets.py where one exists; none does for these two).
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -36,12 +35,5 @@ EXPERIMENTS: cost_experiment.Experiments = {
 }
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    cost_experiment.add_arguments(parser, EXPERIMENTS)
-    print(cost_experiment.run(EXPERIMENTS, ("ppo",), parser.parse_args(argv)))
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(cost_experiment.main(__doc__, EXPERIMENTS, ("ppo",)))

@@ -36,6 +36,7 @@ TABLE_COLUMNS = [
     "gain_vs_always_measure",
 ]
 SMOKE = (20_480, 10_240)  # env steps and evaluation interval of a smoke run
+UNIT = 10_240  # `--steps` evaluates on multiples of this (of every agent's env steps per update, by default)
 
 
 def add_arguments(parser: argparse.ArgumentParser, experiments: Experiments, seeds: int = 5) -> None:
@@ -46,6 +47,12 @@ def add_arguments(parser: argparse.ArgumentParser, experiments: Experiments, see
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--no-maps", action="store_true", help="skip the measurement maps in the reports")
     parser.add_argument("--smoke", action="store_true", help="2 seeds, 20,480 steps, 2 test episodes")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        help="env steps per configuration instead of each env's budget (say which in the report), about 20 "
+        "evaluations (both rounded to multiples of 10,240)",
+    )
 
 
 def results_table(summary: pd.DataFrame, results: pd.DataFrame) -> pd.DataFrame:
@@ -67,6 +74,9 @@ def run(
     tables = []
     for env_id in args.envs:
         costs, steps, eval_every = (experiments[env_id][0], *SMOKE) if args.smoke else experiments[env_id]
+        if args.steps and not args.smoke:  # about 20 evaluations, on a multiple of every agent's update size
+            eval_every = max(UNIT, round(args.steps / 20 / UNIT) * UNIT)
+            steps = max(1, round(args.steps / eval_every)) * eval_every
         spec = SweepSpec(
             envs=(env_id,),
             agents=agents,
@@ -96,3 +106,11 @@ def run(
     )
     (Path(args.out) / "table.md").write_text(table + "\n")
     return table
+
+
+def main(doc: str, experiments: Experiments, agents: tuple[str, ...], argv: list[str] | None = None) -> int:
+    """The command line of a cost experiment (`doc`: its help text): parse, run, print the table."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_arguments(parser, experiments)
+    print(run(experiments, agents, parser.parse_args(argv)))
+    return 0

@@ -11,7 +11,7 @@ from gymnax.environments import spaces
 from gymnax.environments.environment import Environment
 from gymnax.wrappers.purerl import GymnaxWrapper
 
-from amjax.envs import brax_env
+from amjax.envs import brax_env, suites
 
 EnvFactory = Callable[[], tuple[Environment, Any]]
 
@@ -100,7 +100,8 @@ def registered_envs() -> list[str]:
     """The ids `make_env` accepts: amjax's own, user-registered ones, gymnax's, and (with brax installed) three of
     brax's; any "brax:<env_name>[:<backend>]" works too (`amjax.envs.brax_env`)."""
     brax_ids = brax_env.LISTED if brax_env.brax_installed() else ()
-    return sorted(set(_AMJAX_ENVS) | set(_CUSTOM_ENVS) | set(gymnax.registered_envs) | set(brax_ids))
+    others = set(brax_ids) | set(suites.listed_ids())
+    return sorted(set(_AMJAX_ENVS) | set(_CUSTOM_ENVS) | set(gymnax.registered_envs) | others)
 
 
 def make_env(env_id: str) -> tuple[Environment, Any]:
@@ -112,7 +113,10 @@ def make_env(env_id: str) -> tuple[Environment, Any]:
         return _gymnax(env_id)
     if isinstance(env_id, str) and env_id.startswith(brax_env.PREFIX):
         return brax_env.make_brax(env_id)
+    if suites.suite_of(env_id):
+        return suites.make_suite_env(env_id)
     raise ValueError(
         f"env_id: unknown environment {env_id!r}; allowed values: {', '.join(registered_envs())}, or "
-        f"'{brax_env.PREFIX}<env_name>[:<backend>]' for any brax environment ({brax_env.INSTALL_HINT})"
+        f"'{brax_env.PREFIX}<env_name>[:<backend>]' for any brax environment ({brax_env.INSTALL_HINT}), "
+        f"'craftax:<name>' or 'xminigrid:<name>' ({', '.join(suites.SUITES.values())})"
     )

@@ -3,15 +3,21 @@ or forced; the shapes it builds, its errors before compiling, and the CNN agents
 
 from __future__ import annotations
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from amjax.agents import ALGORITHMS, DQNConfig, PPOConfig
 from amjax.agents.networks import (
+    CONV_FEATURES,
+    CONV_KERNEL,
     ActorCritic,
     DuelingQNetwork,
+    PatchConv,
     RecurrentActorCritic,
     RecurrentQNetwork,
     Torso,
@@ -78,6 +84,26 @@ def test_the_cnn_is_minatars_and_the_mlp_flattens():
     assert {"actor_torso", "critic_torso"} <= set(ac_params["params"])
     logits, value = actor_critic.apply(ac_params, jnp.zeros((4, 10, 10, 5)))
     assert logits.shape == (4, 6) and value.shape == (4,)
+
+
+@settings(max_examples=6, deadline=None)  # each example compiles its shapes
+@given(
+    height=st.integers(3, 9),
+    width=st.integers(3, 9),
+    channels=st.integers(1, 6),
+    batch=st.lists(st.integers(1, 3), max_size=2),
+    seed=st.integers(0, 2**16),
+)
+def test_patch_conv_is_flaxs_convolution(height, width, channels, batch, seed):
+    """The convolution as one product of patches: flax's `nn.Conv` (3 x 3, no padding) with the same parameters,
+    its gradients too, for any image size and batch axes."""
+    x = jax.random.normal(jax.random.key(seed), (*batch, height, width, channels))
+    patch = PatchConv(CONV_FEATURES, CONV_KERNEL)
+    params = patch.init(jax.random.key(seed + 1), x)
+    conv = nn.Conv(CONV_FEATURES, (CONV_KERNEL, CONV_KERNEL), padding="VALID")
+    np.testing.assert_allclose(patch.apply(params, x), conv.apply(params, x), rtol=1e-5, atol=1e-5)
+    grads = [jax.grad(lambda p, f=f: (f(p, x) ** 2).sum())(params) for f in (patch.apply, conv.apply)]
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4), *grads)
 
 
 @pytest.mark.parametrize("network", ["drqn", "ppo-rnn"])

@@ -16,57 +16,44 @@ import amjax
 from amjax.wrappers.active_measure import ActiveMeasure
 from amjax.wrappers.observations import ChannelObservation, standard_observations
 
-
-def _scan(env, params, actions, seed):
-    def step(state, action_key):
-        action, key = action_key
-        obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
-        return state, (obs, reward, terminated, truncated, info["final_observation"])
-
-    obs, state = env.reset(jax.random.key(seed), params)
-    keys = jax.random.split(jax.random.key(seed + 1), len(actions))
-    return obs, jax.lax.scan(step, state, (jnp.asarray(actions), keys))[1]
-
-
-_jitted_scan = jax.jit(_scan, static_argnums=0)
 BREAKOUT, BREAKOUT_PARAMS = gymnax.make("Breakout-MinAtar")  # [10, 10, 4], 3 controls
 MEASURED_BREAKOUT, MEASURED_PARAMS = amjax.make("Breakout-MinAtar", cost=0.1)
 
 
 @settings(max_examples=10, deadline=None)
 @given(seed=st.integers(0, 2**16), controls=st.lists(st.integers(0, 2), min_size=80, max_size=80))
-def test_always_measuring_steps_like_gymnax_breakout(seed, controls):
+def test_always_measuring_steps_like_gymnax_breakout(rollout, seed, controls):
     """Same keys, every action measuring: the frames are gymnax's with one constant flag channel of 1; rewards are
     gymnax's less the cost; ends agree."""
-    first, (obs, reward, terminated, truncated, final) = _jitted_scan(BREAKOUT, BREAKOUT_PARAMS, controls, seed)
-    measured = [c + 3 for c in controls]  # control + n * measure
-    got_first, got = _jitted_scan(MEASURED_BREAKOUT, MEASURED_PARAMS, measured, seed)
-    assert got_first.shape == (10, 10, 5)
-    np.testing.assert_array_equal(got_first[..., :4], first)
-    np.testing.assert_array_equal(got_first[..., 4], 1.0)
-    np.testing.assert_array_equal(got[0][..., :4], obs)
-    np.testing.assert_array_equal(got[0][..., 4], 1.0)
-    np.testing.assert_array_equal(got[4][..., :4], final)
-    np.testing.assert_allclose(got[1], reward - 0.1, rtol=0, atol=1e-6)
-    np.testing.assert_array_equal(got[2], terminated)
-    np.testing.assert_array_equal(got[3], truncated)
+    want = rollout(BREAKOUT, BREAKOUT_PARAMS, jax.random.key(seed), jnp.asarray(controls))
+    measured = jnp.asarray(controls) + 3  # control + n * measure
+    got = rollout(MEASURED_BREAKOUT, MEASURED_PARAMS, jax.random.key(seed), measured)
+    assert got.obs0.shape == (10, 10, 5)
+    np.testing.assert_array_equal(got.obs0[..., :4], want.obs0)
+    np.testing.assert_array_equal(got.obs0[..., 4], 1.0)
+    np.testing.assert_array_equal(got.obs[..., :4], want.obs)
+    np.testing.assert_array_equal(got.obs[..., 4], 1.0)
+    np.testing.assert_array_equal(got.info["final_observation"][..., :4], want.info["final_observation"])
+    np.testing.assert_allclose(got.reward, want.reward - 0.1, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(got.terminated, want.terminated)
+    np.testing.assert_array_equal(got.truncated, want.truncated)
 
 
 @settings(max_examples=10, deadline=None)
 @given(seed=st.integers(0, 2**16), actions=st.lists(st.integers(0, 5), min_size=80, max_size=80))
-def test_unmeasured_steps_show_the_last_measured_frame(seed, actions):
+def test_unmeasured_steps_show_the_last_measured_frame(rollout, seed, actions):
     """Without a measurement the frame shown is the last one measured (or the auto-reset's), its flag channel 0;
     with one it is the true frame, flag 1."""
-    _, (true_obs, *_rest) = _jitted_scan(BREAKOUT, BREAKOUT_PARAMS, [a % 3 for a in actions], seed)
-    first, (obs, _, terminated, truncated, _) = _jitted_scan(MEASURED_BREAKOUT, MEASURED_PARAMS, actions, seed)
-    done = np.asarray(terminated | truncated)
-    last = np.asarray(first[..., :4])
+    true_obs = rollout(BREAKOUT, BREAKOUT_PARAMS, jax.random.key(seed), jnp.asarray(actions) % 3).obs
+    got = rollout(MEASURED_BREAKOUT, MEASURED_PARAMS, jax.random.key(seed), jnp.asarray(actions))
+    done = got.terminated | got.truncated
+    last = got.obs0[..., :4]
     for t, action in enumerate(actions):
         fresh = action >= 3 or done[t]
-        np.testing.assert_array_equal(obs[t][..., 4], float(fresh))  # the flag, constant over the image
+        np.testing.assert_array_equal(got.obs[t][..., 4], float(fresh))  # the flag, constant over the image
         if fresh:
-            last = np.asarray(true_obs[t])
-        np.testing.assert_array_equal(obs[t][..., :4], last)
+            last = true_obs[t]
+        np.testing.assert_array_equal(got.obs[t][..., :4], last)
 
 
 def test_two_dimensional_observations_gain_a_channel_axis():

@@ -1,6 +1,7 @@
-"""Every environment of gymnax's registry under `amjax.make` with the options it can carry: reset and step under jit
-and a vmap over costs, observations inside the space, the costed reward; and the Gymnasium bridge of each through
-Gymnasium's own `check_env`."""
+"""Every environment of gymnax's registry, and the listed ids of the other JAX suites (Craftax, xland-minigrid: the
+optional extras), under `amjax.make` with the options it can carry: reset and step under jit and a vmap over costs,
+observations inside the space, the costed reward; and the Gymnasium bridge of each through Gymnasium's own
+`check_env`."""
 
 from __future__ import annotations
 
@@ -15,10 +16,24 @@ from gymnasium.utils.env_checker import check_env
 from gymnax.environments import spaces
 
 import amjax
+from amjax.envs import suites
+from amjax.envs.registry import make_env
 from amjax.wrappers.gymnasium import to_gymnasium
+from amjax.wrappers.observations import standard_observations
 
-# MNISTBandit-bsuite downloads MNIST when it is built (CI has no network): every other id is tested.
-IDS = [env_id for env_id in gymnax.registered_envs if env_id != "MNISTBandit-bsuite"]
+# MNISTBandit-bsuite downloads MNIST when it is built (CI has no network): every other gymnax id is tested.
+GYMNAX_IDS = [env_id for env_id in gymnax.registered_envs if env_id != "MNISTBandit-bsuite"]
+# Craftax's step takes about a minute to compile on 2 cores: its ids run in the slow tier.
+SUITE_IDS = [
+    pytest.param(
+        env_id,
+        marks=[pytest.mark.skipif(not suites.installed(suite), reason=suites.SUITES[suite])]
+        + ([pytest.mark.slow] if suite == "craftax" else []),
+    )
+    for suite, ids in suites.LISTED.items()
+    for env_id in ids
+]
+IDS = [*GYMNAX_IDS, *SUITE_IDS]
 OPTIONS = {"extra_obs": ("since_measured", "last_action"), "budget": 4, "reward_timing": "on_measure"}
 STEPS = 40
 
@@ -62,17 +77,15 @@ def test_every_gymnax_id_steps_under_jit_and_vmap(env_id):
 def _inner_width(env_id):
     """The width of the inner observation's feature axis (a vector's length, an image's channels) as the wrapper
     reads it: Discrete observations one-hot, 2-D ones with one channel."""
-    inner, inner_params = gymnax.make(env_id)
-    space = inner.observation_space(inner_params)
-    if isinstance(space, spaces.Discrete):
-        return int(space.n)
-    return 1 if len(space.shape) == 2 else space.shape[-1]
+    inner, inner_params = make_env(env_id)
+    return standard_observations(inner, inner_params).observation_space(inner_params).shape[-1]
 
 
 ADVISORY = "we recommend using a symmetric and normalized space"  # native action bounds such as [-2, 2] torques
 
 
-@pytest.mark.parametrize("env_id", IDS)
+# Craftax's bridge is the same code as xland-minigrid's: its minute of compiling is spent once, in the test above.
+@pytest.mark.parametrize("env_id", [*GYMNAX_IDS, *(p for p in SUITE_IDS if not p.values[0].startswith("craftax"))])
 def test_every_gymnax_id_passes_gymnasiums_check_env(env_id):
     env, params = amjax.make(env_id, cost=0.1)
     gym_env = to_gymnasium(env, params)
