@@ -22,9 +22,29 @@ def env_name(env: Any) -> str:
     return getattr(env, "name", type(env).__name__)
 
 
-class OneHotObservation(GymnaxWrapper):
-    """`env` with its Discrete(n) observations (and `info["final_observation"]`) as float32 one-hot vectors;
-    `observation_space` is Box(0, 1, (n,)). Everything else is `env`'s."""
+class MappedObservation(GymnaxWrapper):
+    """`env` with every observation (and `info["final_observation"]`) passed through `convert`; subclasses set it and
+    `observation_space`. Everything else is `env`'s."""
+
+    def convert(self, obs: jax.Array) -> jax.Array:
+        raise NotImplementedError
+
+    def reset(self, key: jax.Array, params: Any = None) -> tuple[jax.Array, Any]:
+        obs, state = self._env.reset(key, params)
+        return self.convert(obs), state
+
+    def step(self, key: jax.Array, state: Any, action: Any, params: Any = None) -> tuple[Any, ...]:
+        obs, state, reward, terminated, truncated, info = self._env.step(key, state, action, params)
+        info = {**info, "final_observation": self.convert(info["final_observation"])}
+        return self.convert(obs), state, reward, terminated, truncated, info
+
+    @property
+    def name(self) -> str:
+        return f"{type(self).__name__}({env_name(self._env)})"
+
+
+class OneHotObservation(MappedObservation):
+    """`env` with its Discrete(n) observations as float32 one-hot vectors; `observation_space` is Box(0, 1, (n,))."""
 
     def __init__(self, env: Any, env_params: Any = None):
         super().__init__(env)
@@ -33,29 +53,16 @@ class OneHotObservation(GymnaxWrapper):
             raise TypeError(f"env: OneHotObservation needs a Discrete observation space, got {type(space).__name__}")
         self.num_values = int(space.n)
 
-    def _one_hot(self, obs: jax.Array) -> jax.Array:
+    def convert(self, obs: jax.Array) -> jax.Array:
         return jax.nn.one_hot(obs, self.num_values, dtype=jnp.float32)
 
     def observation_space(self, params: Any = None) -> spaces.Box:
         return spaces.Box(0.0, 1.0, (self.num_values,), jnp.float32)
 
-    def reset(self, key: jax.Array, params: Any = None) -> tuple[jax.Array, Any]:
-        obs, state = self._env.reset(key, params)
-        return self._one_hot(obs), state
 
-    def step(self, key: jax.Array, state: Any, action: Any, params: Any = None) -> tuple[Any, ...]:
-        obs, state, reward, terminated, truncated, info = self._env.step(key, state, action, params)
-        info = {**info, "final_observation": self._one_hot(info["final_observation"])}
-        return self._one_hot(obs), state, reward, terminated, truncated, info
-
-    @property
-    def name(self) -> str:
-        return f"OneHotObservation({env_name(self._env)})"
-
-
-class ChannelObservation(GymnaxWrapper):
-    """`env` with its 2-D observations [height, width] (and `info["final_observation"]`) as float32 images
-    [height, width, 1]; `observation_space` is the Box with that shape and the same bounds."""
+class ChannelObservation(MappedObservation):
+    """`env` with its 2-D observations [height, width] as float32 images [height, width, 1]; `observation_space` is
+    the Box with that shape and the same bounds."""
 
     def __init__(self, env: Any, env_params: Any = None):
         super().__init__(env)
@@ -63,8 +70,7 @@ class ChannelObservation(GymnaxWrapper):
         if not isinstance(space, spaces.Box) or len(space.shape) != 2:
             raise TypeError(f"env: ChannelObservation needs a 2-D Box observation space, got {space}")
 
-    @staticmethod
-    def _image(obs: jax.Array) -> jax.Array:
+    def convert(self, obs: jax.Array) -> jax.Array:
         return jnp.asarray(obs, jnp.float32)[..., None]
 
     def observation_space(self, params: Any = None) -> spaces.Box:
@@ -72,19 +78,6 @@ class ChannelObservation(GymnaxWrapper):
         low = jnp.broadcast_to(jnp.asarray(space.low, jnp.float32), space.shape)[..., None]
         high = jnp.broadcast_to(jnp.asarray(space.high, jnp.float32), space.shape)[..., None]
         return spaces.Box(low, high, low.shape, jnp.float32)
-
-    def reset(self, key: jax.Array, params: Any = None) -> tuple[jax.Array, Any]:
-        obs, state = self._env.reset(key, params)
-        return self._image(obs), state
-
-    def step(self, key: jax.Array, state: Any, action: Any, params: Any = None) -> tuple[Any, ...]:
-        obs, state, reward, terminated, truncated, info = self._env.step(key, state, action, params)
-        info = {**info, "final_observation": self._image(info["final_observation"])}
-        return self._image(obs), state, reward, terminated, truncated, info
-
-    @property
-    def name(self) -> str:
-        return f"ChannelObservation({env_name(self._env)})"
 
 
 def standard_observations(env: Any, env_params: Any) -> Any:
