@@ -1,0 +1,186 @@
+"""Active measurement on FrozenLake 4x4, slippery (gymnax's `FrozenLake-misc`, issue 53): PPO and Dueling DQN,
+vanilla and at cost 0.05 per measurement (Act-Then-Measure's cost, Krale et al. 2023), 10 seeds, beside exact
+bounds computed from the lake's own transition model.
+
+The lake is small enough to solve. Every step, the agent picks a move and whether to measure; measuring reveals the
+cell (and costs 0.05), not measuring leaves the last measured cell on show. Since the reward (1 at the goal) and the
+end of an episode are seen either way, what the agent knows is the last measured cell and the moves made since, and
+its belief over the cells is that cell pushed through those moves with the holes and the goal masked out. Value
+iteration over these beliefs, with the number of moves between measurements capped at `max_gap`, gives the best
+expected costed return of any policy that measures at least once every `max_gap + 1` steps, exactly (time-limit of
+100 steps and all):
+
+- `max_gap=0` is the always-measure bound: the best return when every step pays the cost;
+- as `max_gap` grows the value rises to the optimum of the active-measure lake, the most any agent can score;
+- at cost 0 with `max_gap=0` it is the lake's own optimum (the vanilla bound).
+
+The agents see less than this bound assumes (the stale cell and the flag, not the moves since, nor the time left),
+so it bounds them from above.
+
+    python experiments/frozen_lake.py --out runs/frozen_lake            # 10 seeds, 512,000 steps, table + bounds
+    python experiments/frozen_lake.py --bounds                          # the bounds alone (seconds)
+    python experiments/frozen_lake.py --smoke --out /tmp/frozen_smoke   # a tiny smoke run
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+ENV_ID = "FrozenLake-misc"
+COST = 0.05
+EXPERIMENTS = {ENV_ID: ((COST,), 512_000, 51_200)}  # env id -> (costs, env steps, steps between evaluations)
+AGENTS = ("ppo", "dqn")
+GAPS = tuple(range(8))  # the bounds' max_gap values: 0 (always measure) to 7 moves between measurements
+
+# Gymnasium's FrozenLake-v1, map "4x4" (gymnax's FrozenLake-misc copies it): S start, F frozen, H hole, G goal;
+# actions 0 left, 1 down, 2 right, 3 up; slippery: the intended move or either perpendicular one, 1/3 each.
+LAKE_MAP = ("SFFF", "FHFH", "FFFH", "HFFG")
+MOVES = ((0, -1), (1, 0), (0, 1), (-1, 0))
+TIME_LIMIT = 100
+
+
+class Lake(NamedTuple):
+    """The lake as a tabular model: `transitions[a, s, s']`, the reward on entering s', which cells end an episode,
+    and the start cell."""
+
+    transitions: np.ndarray
+    reward: np.ndarray
+    terminal: np.ndarray
+    start: int
+
+
+def lake_model(lake_map: tuple[str, ...] = LAKE_MAP, slippery: bool = True) -> Lake:
+    """The transition model of FrozenLake on `lake_map` (moves off the edge stay put)."""
+    rows, cols = len(lake_map), len(lake_map[0])
+    cells = "".join(lake_map)
+    transitions = np.zeros((len(MOVES), rows * cols, rows * cols))
+    for cell in range(rows * cols):
+        for action in range(len(MOVES)):
+            slips = (action - 1, action, action + 1) if slippery else (action,)
+            for move in slips:
+                row, col = divmod(cell, cols)
+                drow, dcol = MOVES[move % len(MOVES)]
+                to = min(max(row + drow, 0), rows - 1) * cols + min(max(col + dcol, 0), cols - 1)
+                transitions[action, cell, to] += 1.0 / len(slips)
+    reward = np.array([float(c == "G") for c in cells])
+    terminal = np.array([c in "HG" for c in cells])
+    return Lake(transitions, reward, terminal, cells.index("S"))
+
+
+class Bound(NamedTuple):
+    """The solved lake for one cost and gap cap: the value from the start, the expected episode length and
+    measurements under the optimal policy, and the policy itself (`choice[t][k]`: the action, control + 4 * measure,
+    at t steps left for each belief node of depth k, as laid out by `_beliefs`)."""
+
+    value: float
+    length: float
+    measurements: float
+    choice: list[list[np.ndarray]]
+
+
+def _beliefs(lake: Lake, max_gap: int) -> list[np.ndarray]:
+    """The belief nodes by depth k (moves since the last measurement): node `cell * 4**k + moves` (moves in base 4,
+    the first one most significant) holds the unnormalised distribution over non-terminal cells after those moves
+    from `cell` (its mass: the chance the episode is still running)."""
+    n_cells = lake.reward.size
+    alive = lake.transitions * ~lake.terminal  # [a, s, s']: the moves, episodes that end masked out
+    depth = [np.eye(n_cells) * ~lake.terminal[:, None]]
+    for _ in range(max_gap):
+        depth.append(np.einsum("ns,ast->nat", depth[-1], alive).reshape(-1, n_cells))
+    return depth
+
+
+def solve(lake: Lake, cost: float, max_gap: int, horizon: int = TIME_LIMIT) -> Bound:
+    """Finite-horizon value iteration over the belief nodes of `_beliefs`, measuring at least every `max_gap + 1`
+    steps; then a forward pass of the optimal policy for its expected length and measurements."""
+    n_moves = lake.transitions.shape[0]
+    beliefs = _beliefs(lake, max_gap)
+    alive = lake.transitions * ~lake.terminal
+    step_reward = [b @ (lake.transitions @ lake.reward).T for b in beliefs]  # [node, a]: expected reward of a move
+    after = [np.einsum("ns,ast->nat", b, alive) for b in beliefs]  # [node, a, s']: belief after a move
+    mass = [b.sum(axis=1) for b in beliefs]
+    values = [np.zeros(len(b)) for b in beliefs]
+    choice: list[list[np.ndarray]] = [[] for _ in range(horizon + 1)]
+    for left in range(1, horizon + 1):
+        new = []
+        for k in range(max_gap + 1):
+            measure = step_reward[k] + after[k] @ values[0] - cost * mass[k][:, None]
+            options = [measure]
+            if k < max_gap:
+                options.insert(0, step_reward[k] + values[k + 1].reshape(-1, n_moves))
+            q = np.concatenate(options, axis=1)  # [node, control + 4 * measure]
+            best = q.argmax(axis=1)
+            choice[left].append(best if k < max_gap else best + n_moves)
+            new.append(q.max(axis=1))
+        values = new
+
+    # Forward: the chance of reaching each node with t steps left, then the steps and measurements it takes there.
+    reach = [np.zeros(len(b)) for b in beliefs]
+    reach[0][lake.start] = 1.0
+    length = measurements = 0.0
+    for left in range(horizon, 0, -1):
+        nxt = [np.zeros(len(b)) for b in beliefs]
+        for k in range(max_gap + 1):
+            act = choice[left][k]
+            control, measured = act % n_moves, act >= n_moves
+            live = reach[k] * mass[k]
+            length += live.sum()
+            measurements += live[measured].sum()
+            nodes = np.arange(len(act))
+            nxt[0] += (reach[k][measured, None] * after[k][nodes[measured], control[measured]]).sum(axis=0)
+            if k < max_gap:
+                np.add.at(nxt[k + 1], nodes[~measured] * n_moves + control[~measured], reach[k][~measured])
+        reach = nxt
+    return Bound(float(values[0][lake.start]), float(length), float(measurements), choice)
+
+
+def bounds_table(cost: float = COST, gaps: tuple[int, ...] = GAPS) -> str:
+    """The bounds as a markdown table: the vanilla optimum, then the active-measure lake by gap cap."""
+    lake = lake_model()
+    vanilla = solve(lake, 0.0, 0)
+    lines = [
+        "| policy class | costed return | success (raw return) | episode length | measurements | measured fraction |",
+        "|---|---|---|---|---|---|",
+        f"| vanilla lake (no cost), optimal | {vanilla.value:.3f} | {vanilla.value:.3f} | {vanilla.length:.1f} "
+        f"| {vanilla.length:.1f} | 1.00 |",
+    ]
+    for gap in gaps:
+        bound = solve(lake, cost, gap)
+        name = "always measure" if gap == 0 else f"measure at least every {gap + 1} steps"
+        raw = bound.value + cost * bound.measurements
+        lines.append(
+            f"| {name}, optimal | {bound.value:.3f} | {raw:.3f} | {bound.length:.1f} | {bound.measurements:.1f} "
+            f"| {bound.measurements / max(bound.length, 1e-9):.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Train and tabulate (`experiments/cost_experiment.py`), then the bounds; or the bounds alone (`--bounds`)."""
+    if "--bounds" in (sys.argv[1:] if argv is None else argv):
+        print(bounds_table())
+        return 0
+    import amjax
+
+    amjax.use_all_cores()  # one CPU device per core, before the imports below start JAX
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the experiments are not installed
+    from experiments import cost_experiment
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bounds", action="store_true", help="print the exact bounds only (no training)")
+    cost_experiment.add_arguments(parser, EXPERIMENTS, seeds=10)
+    args = parser.parse_args(argv)
+    table = cost_experiment.run(EXPERIMENTS, AGENTS, args)
+    bounds = bounds_table()
+    (Path(args.out) / "bounds.md").write_text(bounds + "\n")
+    print(table, bounds, sep="\n\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
