@@ -6,19 +6,21 @@ The lake is small enough to solve. Every step, the agent picks a move and whethe
 cell (and costs 0.05), not measuring leaves the last measured cell on show. Since the reward (1 at the goal) and the
 end of an episode are seen either way, what the agent knows is the last measured cell and the moves made since, and
 its belief over the cells is that cell pushed through those moves with the holes and the goal masked out. Value
-iteration over these beliefs, with the number of moves between measurements capped at `max_gap`, gives the best
-expected costed return of any policy that measures at least once every `max_gap + 1` steps, exactly (time-limit of
+iteration over these beliefs, with the number of moves between measurements capped at `max_gap`, gives the exact
+best expected costed return among the policies that measure at least once every `max_gap + 1` steps (time limit of
 100 steps and all):
 
-- `max_gap=0` is the always-measure bound: the best return when every step pays the cost;
-- as `max_gap` grows the value rises to the optimum of the active-measure lake, the most any agent can score;
-- at cost 0 with `max_gap=0` it is the lake's own optimum (the vanilla bound).
+- `max_gap=0` is the always-measure optimum: the best return when every step pays the cost;
+- as `max_gap` grows the value rises towards the optimum of the active-measure lake. Each capped value is reached
+  by some policy, so it is a lower bound on that optimum; it bounds from above only the policies within its cap;
+- at cost 0 with `max_gap=0` it is the lake's own optimum (the vanilla bound), an upper bound on every policy.
 
-The agents see less than this bound assumes (the stale cell and the flag, not the moves since, nor the time left),
-so it bounds them from above.
+The agents see less than these policies use (the shown cell and the flag; not the moves since, nor the time left).
+What an agent without memory can do without ever measuring is solved too (`never_measure`): one move for the
+fresh view of the start, one for the stale view ever after.
 
     python experiments/frozen_lake.py --out runs/frozen_lake            # 10 seeds, 512,000 steps, table + bounds
-    python experiments/frozen_lake.py --bounds                          # the bounds alone (seconds)
+    python experiments/frozen_lake.py --bounds                          # the bounds alone (about a minute)
     python experiments/frozen_lake.py --smoke --out /tmp/frozen_smoke   # a tiny smoke run
 """
 
@@ -41,6 +43,7 @@ GAPS = tuple(range(8))  # the bounds' max_gap values: 0 (always measure) to 7 mo
 # actions 0 left, 1 down, 2 right, 3 up; slippery: the intended move or either perpendicular one, 1/3 each.
 LAKE_MAP = ("SFFF", "FHFH", "FFFH", "HFFG")
 MOVES = ((0, -1), (1, 0), (0, 1), (-1, 0))
+MOVE_NAMES = ("left", "down", "right", "up")
 TIME_LIMIT = 100
 
 
@@ -62,9 +65,9 @@ def lake_model(lake_map: tuple[str, ...] = LAKE_MAP, slippery: bool = True) -> L
     for cell in range(rows * cols):
         for action in range(len(MOVES)):
             slips = (action - 1, action, action + 1) if slippery else (action,)
-            for move in slips:
+            for slip in slips:
                 row, col = divmod(cell, cols)
-                drow, dcol = MOVES[move % len(MOVES)]
+                drow, dcol = MOVES[slip % len(MOVES)]
                 to = min(max(row + drow, 0), rows - 1) * cols + min(max(col + dcol, 0), cols - 1)
                 transitions[action, cell, to] += 1.0 / len(slips)
     reward = np.array([float(c == "G") for c in cells])
@@ -75,7 +78,7 @@ def lake_model(lake_map: tuple[str, ...] = LAKE_MAP, slippery: bool = True) -> L
 class Bound(NamedTuple):
     """The solved lake for one cost and gap cap: the value from the start, the expected episode length and
     measurements under the optimal policy, and the policy itself (`choice[t][k]`: the action, control + 4 * measure,
-    at t steps left for each belief node of depth k, as laid out by `_beliefs`)."""
+    at t steps left for each belief node of depth k, as laid out by `_beliefs`; `choice[0]` is empty)."""
 
     value: float
     length: float
@@ -83,12 +86,17 @@ class Bound(NamedTuple):
     choice: list[list[np.ndarray]]
 
 
+def _alive(lake: Lake) -> np.ndarray:
+    """`[a, s, s']`: the moves with the ones that end the episode masked out."""
+    return lake.transitions * ~lake.terminal
+
+
 def _beliefs(lake: Lake, max_gap: int) -> list[np.ndarray]:
     """The belief nodes by depth k (moves since the last measurement): node `cell * 4**k + moves` (moves in base 4,
     the first one most significant) holds the unnormalised distribution over non-terminal cells after those moves
     from `cell` (its mass: the chance the episode is still running)."""
     n_cells = lake.reward.size
-    alive = lake.transitions * ~lake.terminal  # [a, s, s']: the moves, episodes that end masked out
+    alive = _alive(lake)
     depth = [np.eye(n_cells) * ~lake.terminal[:, None]]
     for _ in range(max_gap):
         depth.append(np.einsum("ns,ast->nat", depth[-1], alive).reshape(-1, n_cells))
@@ -100,7 +108,7 @@ def solve(lake: Lake, cost: float, max_gap: int, horizon: int = TIME_LIMIT) -> B
     steps; then a forward pass of the optimal policy for its expected length and measurements."""
     n_moves = lake.transitions.shape[0]
     beliefs = _beliefs(lake, max_gap)
-    alive = lake.transitions * ~lake.terminal
+    alive = _alive(lake)
     step_reward = [b @ (lake.transitions @ lake.reward).T for b in beliefs]  # [node, a]: expected reward of a move
     after = [np.einsum("ns,ast->nat", b, alive) for b in beliefs]  # [node, a, s']: belief after a move
     mass = [b.sum(axis=1) for b in beliefs]
@@ -139,6 +147,23 @@ def solve(lake: Lake, cost: float, max_gap: int, horizon: int = TIME_LIMIT) -> B
     return Bound(float(values[0][lake.start]), float(length), float(measurements), choice)
 
 
+def never_measure(lake: Lake, horizon: int = TIME_LIMIT) -> tuple[float, float, int, int]:
+    """The best memoryless policy that never measures: it sees the start cell, fresh, then the same cell stale for
+    the rest of the episode, so it is one move for each view. Returns its value (the chance of reaching the goal),
+    its expected episode length and the two moves."""
+    alive, gain = _alive(lake), lake.transitions @ lake.reward  # gain[a, s]: the chance a move from s ends at the goal
+    best = (-1.0, 0.0, 0, 0)
+    for first in range(len(MOVES)):
+        for then in range(len(MOVES)):
+            belief, value, length = np.eye(lake.reward.size)[lake.start], 0.0, 0.0
+            for step in range(horizon):
+                move = first if step == 0 else then
+                value, length = value + belief @ gain[move], length + belief.sum()
+                belief = belief @ alive[move]
+            best = max(best, (float(value), float(length), first, then))
+    return best
+
+
 def bounds_table(cost: float = COST, gaps: tuple[int, ...] = GAPS) -> str:
     """The bounds as a markdown table: the vanilla optimum, then the active-measure lake by gap cap."""
     lake = lake_model()
@@ -149,6 +174,11 @@ def bounds_table(cost: float = COST, gaps: tuple[int, ...] = GAPS) -> str:
         f"| vanilla lake (no cost), optimal | {vanilla.value:.3f} | {vanilla.value:.3f} | {vanilla.length:.1f} "
         f"| {vanilla.length:.1f} | 1.00 |",
     ]
+    blind, length, first, then = never_measure(lake)
+    lines.append(
+        f"| never measure, memoryless (best: {MOVE_NAMES[first]}, then {MOVE_NAMES[then]} on every stale view) "
+        f"| {blind:.3f} | {blind:.3f} | {length:.1f} | 0 | 0.00 |"
+    )
     for gap in gaps:
         bound = solve(lake, cost, gap)
         name = "always measure" if gap == 0 else f"measure at least every {gap + 1} steps"
@@ -162,6 +192,7 @@ def bounds_table(cost: float = COST, gaps: tuple[int, ...] = GAPS) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Train and tabulate (`experiments/cost_experiment.py`), then the bounds; or the bounds alone (`--bounds`)."""
+    # `--bounds` is looked for before parsing: it needs no JAX, and the parser below is built after JAX starts.
     if "--bounds" in (sys.argv[1:] if argv is None else argv):
         print(bounds_table())
         return 0
