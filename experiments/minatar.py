@@ -15,7 +15,8 @@ Costs: both games pay +1 per brick or alien destroyed, and a trained agent colle
 rate, 0.05 about 25-50% and 0.1 about 50-100%, so the three costs range from a small tax to one that only a policy
 measuring on few steps can afford. Speed on 2 CPU cores (2026-11-28, AMD EPYC): PPO with the CNN trains about 3,600
 env-steps/s (one configuration or eight side by side), so the full experiment (2 games x 4 settings x 5 seeds x
-10 M steps) is about 30 hours there; a GPU or `--steps` makes it fit.
+10 M steps) is about 30 hours there; a GPU or `--steps` makes it fit. docs/minatar.md reports the run at
+`--steps 307200` (44 minutes there).
 """
 
 from __future__ import annotations

@@ -1,18 +1,19 @@
-"""The exact FrozenLake bounds of `experiments/frozen_lake.py`: its tabular model against gymnax's own lake, and its
-solved policies played in amjax's wrapped env, where they must score what the solver says they score."""
+"""The exact FrozenLake bounds of `experiments/frozen_lake.py`: its tabular models against the envs (gymnax's lake,
+and the semi-slippery lake of Act-Then-Measure that the experiment registers), and its solved policies played in
+amjax's wrapped env, where they must score what the solver says they score."""
 
 from __future__ import annotations
 
 import importlib.util
 from pathlib import Path
 
-import gymnax
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import amjax
+from amjax.envs.registry import make_env
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -27,16 +28,20 @@ def _experiment():
 
 
 FROZEN = _experiment()
+FROZEN.register_semi_slippery()
 LAKE = FROZEN.lake_model()
 
 
 N_CELLS, N_MOVES = LAKE.reward.size, LAKE.transitions.shape[0]
 
 
-def test_model_matches_gymnax_transitions():
-    """4,000 gymnax steps from each (cell, move): the frequencies of the next cell match the model's probabilities
-    (1/3 each for the three slips) within 5 standard errors; the rewards and terminal cells match too."""
-    env, params = gymnax.make(FROZEN.ENV_ID)
+@pytest.mark.parametrize("env_id", list(FROZEN.DYNAMICS))
+def test_model_matches_the_env_transitions(env_id):
+    """4,000 env steps from each (cell, move): the frequencies of the next cell match the model's probabilities (1/3
+    for each of three slips; 1/2 for one cell or two) within 5 standard errors; the rewards and terminal cells
+    match too."""
+    lake = FROZEN.lake_model(FROZEN.DYNAMICS[env_id])
+    env, params = make_env(env_id)
     samples = 4_000
     cells, moves = np.meshgrid(np.arange(N_CELLS), np.arange(N_MOVES), indexing="ij")
     keys = jax.random.split(jax.random.key(0), N_CELLS * N_MOVES * samples).reshape(N_CELLS, N_MOVES, samples)
@@ -49,10 +54,10 @@ def test_model_matches_gymnax_transitions():
     step_all = jax.jit(jax.vmap(jax.vmap(jax.vmap(step, (0, None, None)), (0, 0, 0)), (0, 0, 0)))
     to, reward, terminated = jax.device_get(step_all(keys, jnp.asarray(cells), jnp.asarray(moves)))
     freq = np.stack([np.eye(N_CELLS)[to[:, a]].mean(axis=1) for a in range(N_MOVES)])  # [a, s, s']
-    se = np.sqrt(LAKE.transitions * (1 - LAKE.transitions) / samples)
-    assert np.all(np.abs(freq - LAKE.transitions) <= 5 * se + 1e-12)
-    np.testing.assert_array_equal(reward, LAKE.reward[to])
-    np.testing.assert_array_equal(terminated, LAKE.terminal[to])
+    se = np.sqrt(lake.transitions * (1 - lake.transitions) / samples)
+    assert np.all(np.abs(freq - lake.transitions) <= 5 * se + 1e-12)
+    np.testing.assert_array_equal(reward, lake.reward[to])
+    np.testing.assert_array_equal(terminated, lake.terminal[to])
 
 
 def _plain_value_iteration(lake, horizon):
