@@ -20,7 +20,7 @@ What an agent without memory can do without ever measuring is solved too (`never
 fresh view of the start, one for the stale view ever after.
 
     python experiments/frozen_lake.py --out runs/frozen_lake            # both lakes, 10 seeds, 512,000 steps
-    python experiments/frozen_lake.py --bounds                          # the bounds alone (about two minutes)
+    python experiments/frozen_lake.py --bounds                          # the bounds alone (about a minute)
     python experiments/frozen_lake.py --smoke --out /tmp/frozen_smoke   # a tiny smoke run
 """
 
@@ -160,10 +160,11 @@ def solve(lake: Lake, cost: float, max_gap: int, horizon: int = TIME_LIMIT) -> B
     """Finite-horizon value iteration over the belief nodes of `_beliefs`, measuring at least every `max_gap + 1`
     steps; then a forward pass of the optimal policy for its expected length and measurements."""
     n_moves = lake.transitions.shape[0]
-    beliefs = _beliefs(lake, max_gap)
-    alive = _alive(lake)
+    deeper = _beliefs(lake, max_gap + 1)  # depth k + 1 is depth k after each move
+    beliefs = deeper[:-1]
+    # [node, a, s']: the belief after each move
+    after = [d.reshape(len(b), n_moves, -1) for b, d in zip(beliefs, deeper[1:], strict=True)]
     step_reward = [b @ (lake.transitions @ lake.reward).T for b in beliefs]  # [node, a]: expected reward of a move
-    after = [np.einsum("ns,ast->nat", b, alive) for b in beliefs]  # [node, a, s']: belief after a move
     mass = [b.sum(axis=1) for b in beliefs]
     values = [np.zeros(len(b)) for b in beliefs]
     choice: list[list[np.ndarray]] = [[] for _ in range(horizon + 1)]

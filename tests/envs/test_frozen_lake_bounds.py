@@ -4,8 +4,9 @@ amjax's wrapped env, where they must score what the solver says they score."""
 
 from __future__ import annotations
 
-import importlib.util
+import runpy
 from pathlib import Path
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -16,18 +17,7 @@ import amjax
 from amjax.envs.registry import make_env
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _experiment():
-    path = ROOT / "experiments" / "frozen_lake.py"
-    spec = importlib.util.spec_from_file_location("_frozen_lake", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-FROZEN = _experiment()
+FROZEN = SimpleNamespace(**runpy.run_path(str(ROOT / "experiments" / "frozen_lake.py")))  # not installed: by path
 FROZEN.register_semi_slippery()
 LAKE = FROZEN.lake_model()
 

@@ -10,8 +10,9 @@ Skipped without Box2D; ~10 s on one CPU core.
 
 from __future__ import annotations
 
-import importlib.util
+import runpy
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -30,14 +31,9 @@ MIN_THRESHOLD = 0.0  # no episode of the 100 ended below 98
 
 
 def _benchmark():
-    """The benchmark script as a module: the test plays the policy with its `gymnasium_returns`, the loop that
-    produced the documented 100-seed numbers."""
-    path = ROOT / "experiments" / "lunar_lander_transfer.py"
-    spec = importlib.util.spec_from_file_location("_lunar_lander_transfer", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """The benchmark script's names: the test plays the policy with its `gymnasium_returns`, the loop that produced
+    the documented 100-seed numbers."""
+    return SimpleNamespace(**runpy.run_path(str(ROOT / "experiments" / "lunar_lander_transfer.py")))
 
 
 def test_committed_policy_is_a_vanilla_lunar_lander_ppo() -> None:
