@@ -297,6 +297,41 @@ def run_cases(
     return recorder.path
 
 
+def time_training_batch(algo: Any, items: Sequence[Any], keys: Any) -> dict[str, Any]:
+    """Compile and run validated configs `items` (one static key) of `algo` with `keys` as one vmapped training
+    program split over this process's CPU devices, as a sweep runs a batch; the compile and run seconds, the env
+    steps per second of the run (all configurations together, evaluations included) and the median final test
+    costed return. JAX is imported here, so a child can set its device count before."""
+    import jax
+    import jax.numpy as jnp
+
+    from amjax.agents import stack_configs
+    from amjax.agents.training import init_run, run_evals
+    from amjax.sweep.devices import config_sharding, sharded_jit
+
+    config, num_evals, total = stack_configs(list(items)), items[0].num_evals, items[0].total_timesteps
+    cpus = jax.devices("cpu")
+
+    def eval_returns(c: Any, k: Any) -> Any:
+        return run_evals(algo, c, init_run(algo, c, k), num_evals)[1].test.costed_return
+
+    train = sharded_jit(jax.vmap(eval_returns), cpus, in_shardings=config_sharding(cpus))
+    config, keys = jax.device_put((config, keys), config_sharding(cpus))
+    start = time.perf_counter()
+    compiled = train.lower(config, keys).compile()
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    returns = jax.block_until_ready(compiled(config, keys))
+    run_s = time.perf_counter() - start
+    return {
+        "steps_per_config": total,
+        "compile_s": round(compile_s, 1),
+        "run_s": round(run_s, 1),
+        "env_steps_per_s": round(len(items) * total / run_s),
+        "final_eval_return_median": round(float(jnp.median(returns[:, -1])), 1),
+    }
+
+
 def child_result(measurements: dict[str, Any]) -> None:
     """In a child: print the measurements, with the child's own peak memory (`peak_rss_mib`), as the record
     `run_child` reads."""

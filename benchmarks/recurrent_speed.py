@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -60,9 +59,7 @@ def run_case(name: str, configs: int, steps: int, eval_every: int, devices: int 
     jax.config.update("jax_num_cpu_devices", devices)  # before JAX starts (this child's first JAX call)
     import jax.numpy as jnp
 
-    from amjax.agents import ALGORITHMS, stack_configs
-    from amjax.agents.training import init_run, run_evals
-    from amjax.sweep.devices import config_sharding, sharded_jit
+    from amjax.agents import ALGORITHMS
 
     agent, overrides = CASES[name]
     algo = ALGORITHMS[agent]
@@ -71,34 +68,9 @@ def run_case(name: str, configs: int, steps: int, eval_every: int, devices: int 
     every = max(unit, eval_every // unit * unit)
     total = max(every, steps // every * every)
     items = [c.replace(eval_every=every, total_timesteps=total).validate() for c in items]
-    config, num_evals = stack_configs(items), items[0].num_evals
     keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
-
-    cpus = jax.devices("cpu")  # `devices` of them (set above)
-
-    def eval_returns(c, k):
-        return run_evals(algo, c, init_run(algo, c, k), num_evals)[1].test.costed_return
-
-    train = sharded_jit(jax.vmap(eval_returns), cpus, in_shardings=config_sharding(cpus))
-    config, keys = jax.device_put((config, keys), config_sharding(cpus))
-    start = time.perf_counter()
-    compiled = train.lower(config, keys).compile()
-    compile_s = time.perf_counter() - start
-    start = time.perf_counter()
-    returns = jax.block_until_ready(compiled(config, keys))
-    run_s = time.perf_counter() - start
-    return {
-        "case": name,
-        "agent": agent,
-        "overrides": overrides,
-        "configs": configs,
-        "devices": devices,
-        "steps_per_config": total,
-        "compile_s": round(compile_s, 1),
-        "run_s": round(run_s, 1),
-        "env_steps_per_s": round(configs * total / run_s),
-        "final_eval_return_median": round(float(jnp.median(returns[:, -1])), 1),
-    }
+    timing = harness.time_training_batch(algo, items, keys)  # on the `devices` CPU devices set above
+    return {"case": name, "agent": agent, "overrides": overrides, "configs": configs, "devices": devices, **timing}
 
 
 def render(runs: list[dict[str, Any]]) -> str:

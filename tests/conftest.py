@@ -32,6 +32,12 @@ COMPILE_CACHE = os.environ.setdefault(
     "JAX_COMPILATION_CACHE_DIR", str(Path(tempfile.gettempdir()) / "amjax-tests-compile-cache")
 )
 jax.config.update("jax_compilation_cache_dir", COMPILE_CACHE)
+# Every program, not only those that took JAX's default 1 s to compile: the suite compiles hundreds of small
+# programs (a rollout, a wrapper's step, a few updates), and loading one back is far cheaper than compiling it again.
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+jax.config.update(
+    "jax_persistent_cache_min_compile_time_secs", float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"])
+)
 # JAX writes an entry in place; amjax makes every process that imports its agents write entries whole (temporary
 # name, then renamed: `amjax.files.write_compile_cache_whole`), so no process reads half of one, whether its writer
 # was killed or is still writing. The test processes do it from the start.

@@ -34,7 +34,7 @@ PRESETS: dict[str, SweepSpec] = {
 # The replication grid: the paper's three environments x costs 0-0.3 plus vanilla x its three agents x 10 seeds.
 # Budgets are per environment (env steps per configuration, steps between evaluations): each environment is its
 # own sweep, in its own folder. Every budget is a multiple of every agent's env steps per update (PPO 1,024,
-# DQN 4, DRQN 32) so all agents share the evaluation points.
+# DQN 4, DRQN 32, PQN 512) so all agents share the evaluation points.
 REPLICATE_AGENTS = ("dqn", "ppo", "drqn")
 REPLICATE_BUDGETS: dict[str, tuple[int, int]] = {
     # CartPole: DQN and PPO reach the paper's medians within 153,600 steps (the demo), so does DRQN (beating DQN).

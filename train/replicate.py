@@ -2,8 +2,8 @@
 
 The paper's grid (default): Dueling DQN and PPO on CartPole-v0, Acrobot-v1 and LunarLander-v3, and DRQN on
 CartPole-v0 (where the paper ran it), each x costs 0, 0.1, 0.2, 0.3 plus vanilla x 10 seeds: 350 configurations.
-`--extended` runs DRQN and recurrent PPO on every environment too: 600 configurations. One sweep per environment in
-`OUT/<env>/` (each resumable: rerun the same command after an interruption), each with its report in
+`--extended` runs DRQN, recurrent PPO and PQN on every environment too: 750 configurations. One sweep per
+environment in `OUT/<env>/` (each resumable: rerun the same command after an interruption), each with its report in
 `OUT/<env>/report/`, and `OUT/report.md` joining their tables with wall times.
 """
 
@@ -27,14 +27,14 @@ PAPER_AGENTS: dict[str, tuple[str, ...]] = {
     "Acrobot-v1": ("dqn", "ppo"),
     "LunarLander-v3": ("dqn", "ppo"),
 }
-EXTENDED_AGENTS = ("dqn", "ppo", "drqn", "ppo-rnn")  # --extended: on every environment
+EXTENDED_AGENTS = ("dqn", "ppo", "drqn", "ppo-rnn", "pqn")  # --extended: on every environment
 
 
 def replicate_grid(
     envs: tuple[str, ...], agents: tuple[str, ...] = (), extended: bool = False, seeds: int = 10, quick: bool = False
 ) -> dict[str, Any]:
     """One sweep spec per environment: `agents` on every env if given, else the paper's grid (`extended`: the
-    recurrent agents on every env too)."""
+    recurrent agents and PQN on every env too)."""
     specs: dict[str, Any] = {}
     for env in envs:
         chosen = agents or (EXTENDED_AGENTS if extended else PAPER_AGENTS.get(env, ("dqn", "ppo")))
@@ -45,7 +45,7 @@ def replicate_grid(
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "replicate",
-        help="run the paper's grid (350 configurations; --extended: 600) and write its report",
+        help="run the paper's grid (350 configurations; --extended: 750) and write its report",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -62,7 +62,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         nargs="+",
         metavar="AGENT",
         help="these agents on every env (default: the paper's: dqn and ppo everywhere, drqn on "
-        "CartPole-v0); agents: ppo, dqn (Dueling Double DQN with n-step returns), drqn, ppo-rnn",
+        "CartPole-v0); agents: ppo, dqn (Dueling Double DQN with n-step returns), drqn, ppo-rnn, pqn",
     )
     parser.add_argument(
         "--extended", action="store_true", help=f"the extended grid: {', '.join(EXTENDED_AGENTS)} on every env"

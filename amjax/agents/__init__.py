@@ -5,6 +5,7 @@ from amjax.agents.dqn import DQN, DQNConfig
 from amjax.agents.drqn import DRQN, DRQNConfig
 from amjax.agents.ppo import PPO, PPOConfig
 from amjax.agents.ppo_rnn import PPO_RNN, PPORNNConfig
+from amjax.agents.pqn import PQN, PQNConfig
 from amjax.agents.registry import ALGORITHMS, agent_of, algorithm, config_for
 from amjax.agents.saved import PolicyFileError, SavedPolicy, load_policy, save_policy
 from amjax.agents.setup import Setup, training_env
@@ -26,6 +27,7 @@ __all__ = [
     "DRQN",
     "PPO",
     "PPO_RNN",
+    "PQN",
     "AgentConfig",
     "Algorithm",
     "DQNConfig",
@@ -34,6 +36,7 @@ __all__ = [
     "FinishedEpisodes",
     "PPOConfig",
     "PPORNNConfig",
+    "PQNConfig",
     "PolicyFileError",
     "RunState",
     "SavedPolicy",

@@ -33,6 +33,7 @@ class MLP(nn.Module):
     hidden: Sequence[int]
     activation: str = "tanh"
     obs_ndim: int = 1
+    layer_norm: bool = False  # LayerNorm (Ba et al. 2016) between each Dense layer and its activation (PQN)
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -40,7 +41,8 @@ class MLP(nn.Module):
         if self.obs_ndim > 1:
             x = x.reshape(*x.shape[: x.ndim - self.obs_ndim], -1)
         for width in self.hidden:
-            x = act(nn.Dense(width, kernel_init=scaled_init(2**0.5))(x))
+            x = nn.Dense(width, kernel_init=scaled_init(2**0.5))(x)
+            x = act(nn.LayerNorm()(x) if self.layer_norm else x)
         return x
 
 
@@ -75,12 +77,13 @@ class ConvTorso(nn.Module):
 
     hidden: Sequence[int]
     activation: str = "relu"
+    layer_norm: bool = False  # in the Dense layers (`MLP`)
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         conv = PatchConv(CONV_FEATURES, CONV_KERNEL, kernel_init=scaled_init(2**0.5), name="Conv_0")
         x = ACTIVATIONS[self.activation](conv(x))
-        return MLP(self.hidden, self.activation, obs_ndim=3)(x)
+        return MLP(self.hidden, self.activation, obs_ndim=3, layer_norm=self.layer_norm)(x)
 
 
 TORSOS = ("auto", "mlp", "cnn")
@@ -94,10 +97,12 @@ class Torso:
     kind: str = "mlp"
     obs_ndim: int = 1
 
-    def build(self, hidden: Sequence[int], activation: str, name: str | None = None) -> nn.Module:
+    def build(
+        self, hidden: Sequence[int], activation: str, name: str | None = None, layer_norm: bool = False
+    ) -> nn.Module:
         if self.kind == "cnn":
-            return ConvTorso(hidden, activation, name=name)
-        return MLP(hidden, activation, self.obs_ndim, name=name)
+            return ConvTorso(hidden, activation, layer_norm, name=name)
+        return MLP(hidden, activation, self.obs_ndim, layer_norm, name=name)
 
 
 VECTOR_TORSO = Torso()  # the default body: an MLP on a vector observation
@@ -242,10 +247,11 @@ class DuelingQNetwork(nn.Module):
     dueling: bool = True
     factored_masks: int = 0  # > 0: a factored head over (control, measure mask), this many masks
     torso: Torso = Torso()
+    layer_norm: bool = False  # in the torso's Dense layers (PQN)
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        x = self.torso.build(self.hidden, self.activation)(obs)
+        x = self.torso.build(self.hidden, self.activation, layer_norm=self.layer_norm)(obs)
         return dueling_head(x, self.num_actions, self.dueling, head=NarrowDense, factored_masks=self.factored_masks)
 
 

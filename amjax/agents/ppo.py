@@ -3,7 +3,7 @@
 One `update`: roll out `num_steps` steps of `num_envs` envs -> GAE advantages -> `update_epochs` epochs of
 `num_minibatches` clipped-objective minibatch steps. Truncated episodes bootstrap from the value of the
 pre-reset observation; terminated ones do not.
-The config, optimiser, GAE, loss and shuffle it shares with recurrent PPO are in ppo_core.py.
+The config, optimiser, GAE and loss it shares with recurrent PPO are in ppo_core.py; the minibatch epochs in optim.py.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from flax import struct
 from amjax import strategy
 from amjax.agents.config import static
 from amjax.agents.networks import VECTOR_TORSO, ActorCritic, Torso
-from amjax.agents.optim import minibatch_step
+from amjax.agents.optim import minibatch_epochs, minibatch_step, shuffle
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
     clipped_loss,
@@ -27,7 +27,6 @@ from amjax.agents.ppo_core import (
     make_optimizer,
     policy_distribution,
     rollout_advantages,
-    shuffle,
 )
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
@@ -128,16 +127,10 @@ def update(config: PPOConfig, setup: Setup, state: PPOState) -> tuple[PPOState, 
             return clipped_loss(config, distribution, *network.apply(params, obs), *rest)
 
         step = minibatch_step(optimizer, loss_fn)
-
-        def epoch(carry, key):
-            order = shuffle(key, config.steps_per_update())
-            minibatches = jax.tree.map(lambda x: x[order].reshape(config.num_minibatches, -1, *x.shape[1:]), batch)
-            return jax.lax.scan(step, carry, minibatches)
-
-        (params, opt_state), losses = jax.lax.scan(
-            epoch, (params, opt_state), jax.random.split(fast_key(key_data), config.update_epochs)
+        (params, opt_state), loss = minibatch_epochs(
+            step, (params, opt_state), batch, fast_key(key_data), config.update_epochs, config.num_minibatches
         )
-        return params, opt_state, losses.mean()
+        return params, opt_state, loss
 
     rows = config.steps_per_update() // config.num_minibatches
     params, opt_state, loss = in_groups(learn, _group_size(rows, width))(

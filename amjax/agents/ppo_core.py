@@ -1,5 +1,5 @@
 """What PPO (ppo.py) and recurrent PPO (ppo_rnn.py) share: their base config, the optimiser, GAE, the clipped
-objective and the minibatch shuffle. Both algorithms are siblings of `PPOBaseConfig`.
+objective. Both algorithms are siblings of `PPOBaseConfig`.
 
 `reward_scale` multiplies the rewards (measurement costs included) before GAE: the critic must reach the returns'
 scale within the first few dozen updates (value clipping moves it at most `clip_eps` per update, Adam's step size
@@ -179,23 +179,3 @@ def clipped_loss(
     ).mean()
     entropy = distribution.entropy(policy).mean()
     return policy_loss + config.vf_coef * value_loss - config.ent_coef * entropy
-
-
-def shuffle(key: jax.Array, n: int) -> jax.Array:
-    """A uniformly random permutation of `arange(n)`, cheaper than `jax.random.permutation` on CPU.
-
-    Each round sorts one uint32 array whose high bits are random and whose low bits are the index (XLA's CPU sort
-    is about 5x faster on one integer array than on the (key, index) pair `permutation` sorts). Equal random bits
-    keep index order; a second round with fresh bits re-orders such pairs, so a pair stays in a fixed order only if
-    it ties in both rounds (about n^2 / 2 x 2^(-2 (32 - log2 n)) per permutation: ~3e-8 at n = 1024, against ~1e-4
-    for `jax.random.permutation`'s single 32-bit round).
-    """
-    index_bits = max(1, (n - 1).bit_length())
-    if index_bits > 20:  # too few random bits left per round: fall back
-        return jax.random.permutation(key, n)
-    mask = jnp.uint32((1 << index_bits) - 1)
-    order = jnp.arange(n, dtype=jnp.uint32)
-    for round_key in jax.random.split(key, 2):
-        ranks = jnp.sort((jax.random.bits(round_key, (n,), jnp.uint32) & ~mask) | jnp.arange(n, dtype=jnp.uint32))
-        order = order[ranks & mask]
-    return order.astype(jnp.int32)

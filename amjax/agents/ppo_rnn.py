@@ -21,7 +21,7 @@ from flax import struct
 
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import CELLS, VECTOR_TORSO, RecurrentActorCritic, Torso, zero_carry
-from amjax.agents.optim import minibatch_step
+from amjax.agents.optim import minibatch_step, shuffle
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
     clipped_loss,
@@ -29,7 +29,6 @@ from amjax.agents.ppo_core import (
     make_optimizer,
     policy_distribution,
     rollout_advantages,
-    shuffle,
 )
 from amjax.agents.rollout import EnvBatch, FinishedEpisodes, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup

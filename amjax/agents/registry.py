@@ -10,16 +10,18 @@ from amjax.agents.dqn import DQN
 from amjax.agents.drqn import DRQN
 from amjax.agents.ppo import PPO
 from amjax.agents.ppo_rnn import PPO_RNN
+from amjax.agents.pqn import PQN
 from amjax.agents.training import Algorithm
 from amjax.presets import preset
 
-ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN, DRQN, PPO_RNN)}
+ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN, DRQN, PPO_RNN, PQN)}
 # What each agent is, in the words every listing of the agents uses (the commands' help, the docs).
 DESCRIPTIONS: dict[str, str] = {
     "ppo": "PPO",
     "dqn": "Dueling Double DQN with n-step returns",
     "drqn": "recurrent Dueling Double DQN, R2D2-style sequence replay",
     "ppo-rnn": "recurrent PPO",
+    "pqn": "PQN, parallelised Q-learning with Q(lambda) targets and LayerNorm",
 }
 
 

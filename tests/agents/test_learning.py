@@ -18,7 +18,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amjax.agents import DQN, DRQN, PPO, DQNConfig, DRQNConfig, PPOConfig, init_run, run_evals, stack_configs
+from amjax.agents import (
+    DQN,
+    DRQN,
+    PPO,
+    PQN,
+    DQNConfig,
+    DRQNConfig,
+    PPOConfig,
+    PQNConfig,
+    init_run,
+    run_evals,
+    stack_configs,
+)
 from amjax.presets import env_hyperparams
 
 SEEDS = (0, 1, 2)
@@ -27,6 +39,7 @@ BUDGETS = {
     "ppo": (PPO, PPOConfig(total_timesteps=204_800, eval_every=20_480)),
     # about 60 s of CPU time on 2 cores (about 20 s compiling, 33 s training the 6 configurations)
     "dqn": (DQN, DQNConfig(total_timesteps=150_000, eval_every=10_000)),
+    "pqn": (PQN, PQNConfig(total_timesteps=102_400, eval_every=10_240)),
 }
 
 

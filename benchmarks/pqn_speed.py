@@ -1,0 +1,139 @@
+"""PQN beside Dueling DQN (and the recurrent pair) at the paper grid's batch size, in one invocation (issue 54).
+
+Each case trains `--configs` configurations of one agent on one environment (costs 0.1 / 0.2 / 0.3 x seeds, the
+env's presets, as `amjax replicate` builds them) as one vmapped, jitted program, in its own child process (so peak
+memory is the case's own), split over `--devices` CPU devices as a sweep does. It reports the compile time, the env
+steps per second of the compiled run (all configurations together, evaluations included) and the child's peak
+resident memory; the table gives each agent's speed against its Q-learning counterpart on the same env (pqn
+against dqn, pqn-rnn against drqn).
+
+    python benchmarks/pqn_speed.py                 # benchmarks/results/pqn_speed_<date>_<machine>.jsonl / .md
+    python benchmarks/pqn_speed.py --configs 4 --steps 8192 --envs CartPole-v0   # a smoke run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+if not __package__:  # run as a file: the repository importable, for `benchmarks.harness`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchmarks import harness  # noqa: E402
+
+COSTS = (0.1, 0.2, 0.3)
+ENVS = ("CartPole-v0", "Acrobot-v1", "LunarLander-v3")
+AGENTS = ("dqn", "pqn")
+COUNTERPART = {"pqn": "dqn", "pqn-rnn": "drqn"}  # the speed ratio's denominator
+
+
+def run_case(env_id: str, agent: str, configs: int, steps: int, eval_every: int, devices: int) -> dict[str, Any]:
+    """Compile and time one case in this process, its configurations split over `devices` CPU devices."""
+    import jax
+
+    jax.config.update("jax_num_cpu_devices", devices)  # before JAX starts (this child's first JAX call)
+    import jax.numpy as jnp
+
+    from amjax.agents import ALGORITHMS, config_for
+    from amjax.agents.config import nearest_schedule
+
+    algo = ALGORITHMS[agent]
+    items = [config_for(env_id, agent, cost=COSTS[i % len(COSTS)]) for i in range(configs)]
+    total, every = nearest_schedule(steps, eval_every, items[0].steps_per_update())
+    items = [c.replace(eval_every=every, total_timesteps=total).validate() for c in items]
+    keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
+    timing = harness.time_training_batch(algo, items, keys)  # on the `devices` CPU devices set above
+    return {"env": env_id, "agent": agent, "configs": configs, "devices": devices, **timing}
+
+
+def render(runs: list[dict[str, Any]]) -> str:
+    """The markdown of a results file: one table per run, each agent's env steps/s against its counterpart's."""
+    parts = []
+    for run in runs:
+        settings, results = run["settings"], [r for r in run["cases"] if r["status"] == "ok"]
+        speed = {(r["env"], r["agent"]): r["env_steps_per_s"] for r in results}
+
+        def ratio(r: dict[str, Any], speed: dict[tuple[str, str], int] = speed) -> str:
+            base = speed.get((r["env"], COUNTERPART.get(r["agent"], "")))
+            return f"{r['env_steps_per_s'] / base:.1f}x" if base else ""
+
+        parts.append(
+            f"# PQN beside Dueling DQN at the grid's batch size ({run['date'][:10]})\n\n"
+            f"{settings['configs']} configurations (costs {', '.join(map(str, COSTS))} x seeds, each env's presets) "
+            f"in one vmapped program per case, split over {settings['devices']} CPU device(s), each case in its own "
+            "process, one after the other. Env steps/s: all configurations together, evaluations included, compile "
+            f"excluded. {harness.describe(run)}\n\n"
+            + harness.markdown_table(
+                results,
+                [
+                    ("env", lambda r: r["env"]),
+                    ("agent", lambda r: r["agent"]),
+                    ("steps / config", lambda r: r["steps_per_config"]),
+                    ("compile (s)", lambda r: r["compile_s"]),
+                    ("run (s)", lambda r: r["run_s"]),
+                    ("env steps/s", lambda r: r["env_steps_per_s"]),
+                    ("vs counterpart", ratio),
+                    ("peak RSS (MiB)", lambda r: r["peak_rss_mib"]),
+                ],
+            )
+            + "".join(f"\n{r['env_id']} {r['agent']}: {r['status']}\n" for r in run["cases"] if r["status"] != "ok")
+        )
+    return "\n".join(parts)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--envs", nargs="+", default=list(ENVS), metavar="ENV")
+    parser.add_argument("--agents", nargs="+", default=list(AGENTS), metavar="AGENT")
+    parser.add_argument("--configs", type=int, default=30, help="configurations per case (default 30: 3 costs x 10)")
+    parser.add_argument("--steps", type=int, default=40_960, help="env steps per configuration (rounded)")
+    parser.add_argument("--eval-every", type=int, default=10_240)
+    parser.add_argument("--devices", type=int, default=2, help="CPU devices the configurations are split over")
+    parser.add_argument(
+        "--out",
+        help="results file to append to (default: benchmarks/results/pqn_speed_<date>_<machine>.jsonl; the "
+        "markdown table is written beside it)",
+    )
+    parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:  # before anything starts JAX: the child sets its device count first
+        case = json.loads(args.child)
+        harness.child_result(run_case(**case))
+        return 0
+    from amjax.agents import ALGORITHMS
+    from amjax.cores import usable_cores
+    from amjax.envs.registry import make_env
+
+    for agent in args.agents:
+        if agent not in ALGORITHMS:
+            parser.error(f"--agents: unknown agent {agent!r}; allowed values: {', '.join(ALGORITHMS)}")
+    for env_id in args.envs:
+        try:
+            make_env(env_id)
+        except ValueError as error:
+            parser.error(f"--envs: {error}")
+    if not 1 <= args.devices <= usable_cores():
+        parser.error(f"--devices: {args.devices}; allowed values: 1 to {usable_cores()} (usable cores)")
+    if args.configs % args.devices:
+        parser.error(f"--configs: {args.configs} must be a multiple of --devices ({args.devices})")
+
+    cases = [
+        {
+            "env_id": env_id,
+            "agent": agent,
+            "configs": args.configs,
+            "steps": args.steps,
+            "eval_every": args.eval_every,
+            "devices": args.devices,
+        }
+        for env_id in args.envs
+        for agent in args.agents
+    ]
+    harness.run_cases("pqn_speed", harness.settings_of(args), args.out, __file__, cases, render)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
