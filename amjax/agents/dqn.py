@@ -26,6 +26,7 @@ from amjax.agents.q_learning import (
     QLearningConfig,
     epsilon,
     epsilon_greedy,
+    greedy,
     learn_or_wait,
     make_optimizer,
     n_step_transitions,
@@ -37,7 +38,7 @@ from amjax.agents.q_learning import (
 from amjax.agents.replay import ReplayBuffer, replay_add, replay_init, replay_sample
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
-from amjax.agents.training import Algorithm, UpdateStats, greedy_policy, make_train
+from amjax.agents.training import Algorithm, UpdateStats, make_train
 
 
 @struct.dataclass
@@ -156,10 +157,6 @@ def update(config: DQNConfig, setup: Setup, state: DQNState) -> tuple[DQNState, 
 
     new_state = DQNState(params, target_params, opt_state, buffer, envs, pending, key_bits(key), env_steps)
     return new_state, UpdateStats(loss, episodes)
-
-
-def greedy(config: DQNConfig, setup: Setup, params: Any, num_envs: int):
-    return greedy_policy(lambda obs: setup.network.apply(params, obs))
 
 
 DQN = Algorithm("dqn", DQNConfig, network, init, update, greedy, params=lambda state: state.params)

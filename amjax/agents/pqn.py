@@ -25,10 +25,10 @@ from flax import struct
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import VECTOR_TORSO, DuelingQNetwork, Torso
 from amjax.agents.optim import clipped_adam, minibatch_epochs, minibatch_step
-from amjax.agents.q_learning import epsilon, epsilon_greedy
+from amjax.agents.q_learning import epsilon, epsilon_greedy, greedy
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
-from amjax.agents.training import Algorithm, UpdateStats, greedy_policy, make_train
+from amjax.agents.training import Algorithm, UpdateStats, make_train
 from amjax.validation import check_bool, check_choice, check_positive_int
 
 
@@ -181,10 +181,6 @@ def update(config: PQNConfig, setup: Setup, state: PQNState) -> tuple[PQNState, 
     )
     env_steps = state.env_steps + config.steps_per_update()
     return PQNState(params, opt_state, envs, key_bits(key), env_steps), UpdateStats(loss, episodes)
-
-
-def greedy(config: PQNConfig, setup: Setup, params: Any, num_envs: int):
-    return greedy_policy(lambda obs: setup.network.apply(params, obs))
 
 
 PQN = Algorithm("pqn", PQNConfig, network, init, update, greedy, params=lambda state: state.params)

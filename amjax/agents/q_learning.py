@@ -1,5 +1,6 @@
 """What Dueling DQN (dqn.py) and DRQN (drqn.py) share: their base config, the epsilon schedule and epsilon-greedy
-action, the optimiser, n-step double-Q targets and the target-network update.
+action, the optimiser, n-step double-Q targets and the target-network update; PQN (pqn.py) takes the epsilon
+schedule, the epsilon-greedy action and Dueling DQN's greedy test policy from here too.
 
 Both algorithms are siblings of `QLearningConfig`: each adds only its own fields (DRQN: the sequence length, burn-in
 and recurrent core) and its own defaults.
@@ -18,6 +19,8 @@ from flax import struct
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.optim import clipped_adam
 from amjax.agents.rollout import Transition
+from amjax.agents.setup import Setup
+from amjax.agents.training import Policy, greedy_policy
 from amjax.batching import cheap_cond, uniform_cond
 from amjax.validation import check_choice, check_positive_int
 
@@ -103,6 +106,11 @@ def epsilon_greedy(q: jax.Array, key: jax.Array, eps: jax.Array) -> jax.Array:
     random_action = jax.random.randint(random_key, greedy_action.shape, 0, q.shape[-1])
     explore = jax.random.uniform(explore_key, greedy_action.shape) < eps
     return jnp.where(explore, random_action, greedy_action)
+
+
+def greedy(config: AgentConfig, setup: Setup, params: Any, num_envs: int) -> Policy:
+    """The test policy of a feed-forward Q-network (Dueling DQN, PQN): argmax_a Q(obs, a)."""
+    return greedy_policy(lambda obs: setup.network.apply(params, obs))
 
 
 def transition_arrays(config: QLearningConfig, transitions: Transition) -> dict[str, jax.Array]:
