@@ -1,4 +1,4 @@
-"""PQN beside Dueling DQN (and the recurrent pair) at the paper grid's batch size, in one invocation (issue 54).
+"""PQN beside Dueling DQN and recurrent PQN beside DRQN at the paper grid's batch size, in one invocation (issue 54).
 
 Each case trains `--configs` configurations of one agent on one environment (costs 0.1 / 0.2 / 0.3 x seeds, the
 env's presets, as `amjax replicate` builds them) as one vmapped, jitted program, in its own child process (so peak
@@ -25,7 +25,7 @@ from benchmarks import harness  # noqa: E402
 
 COSTS = (0.1, 0.2, 0.3)
 ENVS = ("CartPole-v0", "Acrobot-v1", "LunarLander-v3")
-AGENTS = ("dqn", "pqn")
+AGENTS = ("dqn", "pqn", "drqn", "pqn-rnn")
 COUNTERPART = {"pqn": "dqn", "pqn-rnn": "drqn"}  # the speed ratio's denominator
 
 
@@ -60,7 +60,8 @@ def render(runs: list[dict[str, Any]]) -> str:
             return f"{r['env_steps_per_s'] / base:.1f}x" if base else ""
 
         parts.append(
-            f"# PQN beside Dueling DQN at the grid's batch size ({run['date'][:10]})\n\n"
+            "# PQN and recurrent PQN beside their Q-learning counterparts at the grid's batch size "
+            f"({run['date'][:10]})\n\n"
             f"{settings['configs']} configurations (costs {', '.join(map(str, COSTS))} x seeds, each env's presets) "
             f"in one vmapped program per case, split over {settings['devices']} CPU device(s), each case in its own "
             "process, one after the other. Env steps/s: all configurations together, evaluations included, compile "

@@ -2,7 +2,7 @@
 
 The paper's grid (default): Dueling DQN and PPO on CartPole-v0, Acrobot-v1 and LunarLander-v3, and DRQN on
 CartPole-v0 (where the paper ran it), each x costs 0, 0.1, 0.2, 0.3 plus vanilla x 10 seeds: 350 configurations.
-`--extended` runs DRQN, recurrent PPO and PQN on every environment too: 750 configurations. One sweep per
+`--extended` runs DRQN, recurrent PPO, PQN and recurrent PQN on every environment too: 900 configurations. One sweep per
 environment in `OUT/<env>/` (each resumable: rerun the same command after an interruption), each with its report in
 `OUT/<env>/report/`, and `OUT/report.md` joining their tables with wall times.
 """
@@ -27,7 +27,7 @@ PAPER_AGENTS: dict[str, tuple[str, ...]] = {
     "Acrobot-v1": ("dqn", "ppo"),
     "LunarLander-v3": ("dqn", "ppo"),
 }
-EXTENDED_AGENTS = ("dqn", "ppo", "drqn", "ppo-rnn", "pqn")  # --extended: on every environment
+EXTENDED_AGENTS = ("dqn", "ppo", "drqn", "ppo-rnn", "pqn", "pqn-rnn")  # --extended: on every environment
 
 
 def replicate_grid(
@@ -45,7 +45,7 @@ def replicate_grid(
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "replicate",
-        help="run the paper's grid (350 configurations; --extended: 750) and write its report",
+        help="run the paper's grid (350 configurations; --extended: 900) and write its report",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -62,7 +62,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         nargs="+",
         metavar="AGENT",
         help="these agents on every env (default: the paper's: dqn and ppo everywhere, drqn on "
-        "CartPole-v0); agents: ppo, dqn (Dueling Double DQN with n-step returns), drqn, ppo-rnn, pqn",
+        "CartPole-v0); agents: ppo, dqn (Dueling Double DQN with n-step returns), drqn, ppo-rnn, pqn, pqn-rnn",
     )
     parser.add_argument(
         "--extended", action="store_true", help=f"the extended grid: {', '.join(EXTENDED_AGENTS)} on every env"

@@ -6,6 +6,7 @@ from amjax.agents.drqn import DRQN, DRQNConfig
 from amjax.agents.ppo import PPO, PPOConfig
 from amjax.agents.ppo_rnn import PPO_RNN, PPORNNConfig
 from amjax.agents.pqn import PQN, PQNConfig
+from amjax.agents.pqn_rnn import PQN_RNN, PQNRNNConfig
 from amjax.agents.registry import ALGORITHMS, agent_of, algorithm, config_for
 from amjax.agents.saved import PolicyFileError, SavedPolicy, load_policy, save_policy
 from amjax.agents.setup import Setup, training_env
@@ -28,6 +29,7 @@ __all__ = [
     "PPO",
     "PPO_RNN",
     "PQN",
+    "PQN_RNN",
     "AgentConfig",
     "Algorithm",
     "DQNConfig",
@@ -37,6 +39,7 @@ __all__ = [
     "PPOConfig",
     "PPORNNConfig",
     "PQNConfig",
+    "PQNRNNConfig",
     "PolicyFileError",
     "RunState",
     "SavedPolicy",

@@ -40,14 +40,16 @@ import optax
 from flax import struct
 
 from amjax.agents.config import static
-from amjax.agents.networks import CELLS, VECTOR_TORSO, RecurrentQNetwork, Torso, zero_carry
+from amjax.agents.networks import RecurrentQNetwork, check_core_fields, zero_carry
 from amjax.agents.q_learning import (
     QLearningConfig,
     epsilon,
-    epsilon_greedy,
     learn_or_wait,
     make_optimizer,
     n_step_transitions,
+    recurrent_epsilon_greedy,
+    recurrent_greedy,
+    recurrent_q_network,
     target_sync,
     td_targets,
     transition_arrays,
@@ -58,7 +60,7 @@ from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollo
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
 from amjax.batching import uniform_cond
-from amjax.validation import check_choice, check_positive_int
+from amjax.validation import check_positive_int
 
 
 @struct.dataclass
@@ -88,10 +90,9 @@ class DRQNConfig(QLearningConfig):
         return self.burn_in + self.seq_len
 
     def check_fields(self) -> None:
-        for name in ("seq_len", "rnn_size"):
-            check_positive_int(name, getattr(self, name))
+        check_positive_int("seq_len", self.seq_len)
+        check_core_fields(self.rnn_size, self.cell)
         check_positive_int("burn_in", self.burn_in, minimum=0)
-        check_choice("cell", self.cell, CELLS)
         super().check_fields()
         if self.train_freq > self.sequence_length:
             raise ValueError(
@@ -121,28 +122,7 @@ class DRQNState:
     env_steps: jax.Array
 
 
-def network(config: DRQNConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -> RecurrentQNetwork:
-    return RecurrentQNetwork(
-        action_space.n,
-        tuple(config.hidden),
-        config.rnn_size,
-        config.cell,
-        config.activation,
-        config.dueling,
-        config.factored_masks,
-        torso,
-    )
-
-
-def _policy(setup: Setup, params: Any, eps: jax.Array):
-    """The epsilon-greedy act function; its extras (the hidden state before the step and the `first` flag) are
-    what sequence storage needs."""
-
-    def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        new_carry, q = setup.network.apply(params, carry, batch.obs, batch.first)
-        return epsilon_greedy(q, key, eps), new_carry, (carry, batch.first)
-
-    return act
+network = recurrent_q_network  # (config, action space, torso) -> DRQN's network
 
 
 def _steps(config: DRQNConfig, transitions: Any, first: jax.Array) -> dict[str, jax.Array]:
@@ -158,7 +138,7 @@ def init(config: DRQNConfig, setup: Setup, key: jax.Array) -> DRQNState:
 
     # The first burn_in + seq_len - train_freq steps of each env, waiting to complete their sequence: random
     # actions, with the initial network's hidden states (not counted as training steps).
-    act = _policy(setup, params, jnp.float32(1.0))
+    act = recurrent_epsilon_greedy(setup, params, jnp.float32(1.0))
     warmup = config.sequence_length - config.train_freq
     envs, carry, transitions, (carries, first), _ = rollout(env, env_params, envs, carry, act, warmup_key, warmup)
     obs = envs.obs[0]
@@ -303,7 +283,7 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
     rollout_key, learn_key, key = jax.random.split(fast_key(state.key), 3)
 
     # 1. Act epsilon-greedily for train_freq steps; store one sequence per env.
-    act = _policy(setup, state.params, epsilon(config, state.env_steps))
+    act = recurrent_epsilon_greedy(setup, state.params, epsilon(config, state.env_steps))
     envs, carry, transitions, (carries, first), episodes = rollout(
         setup.env, setup.env_params, state.envs, state.carry, act, rollout_key, config.train_freq
     )
@@ -356,17 +336,7 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
     return new_state, UpdateStats(mean_loss, episodes)
 
 
-def greedy(config: DRQNConfig, setup: Setup, params: Any, num_envs: int):
-    """The greedy policy and a zero hidden state for `num_envs` test envs."""
-    act = _policy(setup, params, jnp.float32(0.0))
-
-    def greedy_act(batch: EnvBatch, carry: Any, key: jax.Array):
-        action, carry, _ = act(batch, carry, key)
-        return action, carry, None
-
-    return greedy_act, zero_carry(config.cell, config.rnn_size, (num_envs,))
-
-
+greedy = recurrent_greedy  # the greedy policy and a zero hidden state for the test envs
 DRQN = Algorithm("drqn", DRQNConfig, network, init, update, greedy, params=lambda state: state.params)
 train = make_train(DRQN)
 

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 from amjax import strategy
 from amjax.agents.policies import Categorical, Distribution, GaussianOutputs
+from amjax.validation import check_choice, check_positive_int
 
 ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu, "elu": nn.elu}
 
@@ -300,6 +301,12 @@ def dueling_head(
 CELLS = ("gru", "lstm")
 
 
+def check_core_fields(rnn_size: Any, cell: Any) -> None:
+    """ValueError naming `rnn_size` (a positive int) or `cell` (one of `CELLS`) if either is bad."""
+    check_positive_int("rnn_size", rnn_size)
+    check_choice("cell", cell, CELLS)
+
+
 def zero_carry(cell: str, size: int, batch_shape: tuple[int, ...]) -> Any:
     """The initial (all-zero) carry of a `cell` with `size` units for a batch: an array (GRU) or (c, h) (LSTM)."""
     zeros = jnp.zeros((*batch_shape, size), jnp.float32)
@@ -341,10 +348,11 @@ class RecurrentCore(nn.Module):
     cell: str = "gru"
     activation: str = "relu"
     body: Torso = Torso()  # builds the submodule named "torso", as saved parameters name it
+    layer_norm: bool = False  # in the torso's Dense layers (recurrent PQN)
 
     def setup(self) -> None:
         gates = (4 if self.cell == "lstm" else 3) * self.rnn_size
-        self.torso = self.body.build(self.hidden, self.activation)
+        self.torso = self.body.build(self.hidden, self.activation, layer_norm=self.layer_norm)
         self.input_projection = nn.Dense(gates, kernel_init=scaled_init(1.0))
         self.recurrent_kernel = self.param("recurrent_kernel", scaled_init(1.0), (self.rnn_size, gates))
 
@@ -399,8 +407,8 @@ class ActorCriticHeads(nn.Module):
 
 
 class RecurrentQNetwork(nn.Module):
-    """DRQN (Hausknecht & Stone 2015): a recurrent core under the dueling head; one step -> (carry, Q-values);
-    `unroll` -> (carries, Q-values) of a sequence."""
+    """DRQN (Hausknecht & Stone 2015) and recurrent PQN: a recurrent core under the dueling (or plain) head; one
+    step -> (carry, Q-values); `unroll` -> (carries, Q-values) of a sequence."""
 
     num_actions: int
     hidden: Sequence[int] = (64,)
@@ -410,9 +418,12 @@ class RecurrentQNetwork(nn.Module):
     dueling: bool = True
     factored_masks: int = 0
     torso: Torso = Torso()
+    layer_norm: bool = False  # in the torso's Dense layers (recurrent PQN)
 
     def setup(self) -> None:
-        self.core = RecurrentCore(self.hidden, self.rnn_size, self.cell, self.activation, self.torso)
+        self.core = RecurrentCore(
+            self.hidden, self.rnn_size, self.cell, self.activation, self.torso, layer_norm=self.layer_norm
+        )
         self.head = DuelingHead(self.num_actions, self.dueling, self.factored_masks)
 
     def __call__(self, carry: Any, obs: jax.Array, first: jax.Array) -> tuple[Any, jax.Array]:

@@ -1,5 +1,6 @@
 """The optimiser every agent uses (global-norm clipping + Adam, optional linear decay to zero), the gradient step
-that PPO, recurrent PPO and PQN scan over minibatches, and the epochs of shuffled minibatches PPO and PQN run."""
+that PPO, PQN and their recurrent versions scan over minibatches, and the epochs of shuffled minibatches they run
+(of rows for PPO and PQN, of whole env sequences for the recurrent ones)."""
 
 from __future__ import annotations
 
@@ -60,6 +61,39 @@ def minibatch_epochs(
     def epoch(carry: Any, key: jax.Array) -> tuple[Any, jax.Array]:
         order = shuffle(key, rows)
         return jax.lax.scan(step, carry, jax.tree.map(lambda x: x[order].reshape(minibatches, -1, *x.shape[1:]), batch))
+
+    carry, losses = jax.lax.scan(epoch, carry, jax.random.split(key, epochs))
+    return carry, losses.mean()
+
+
+def check_sequence_minibatches(num_envs: int, num_minibatches: int) -> None:
+    """ValueError unless `num_minibatches` divides `num_envs` (`sequence_minibatch_epochs` splits whole envs)."""
+    if num_envs % num_minibatches:
+        raise ValueError(
+            f"num_minibatches={num_minibatches} must divide num_envs={num_envs} (minibatches are whole env sequences)"
+        )
+
+
+def sequence_minibatch_epochs(
+    step: Callable[[Any, Any], tuple[Any, jax.Array]],
+    carry: Any,
+    starts: Any,
+    sequences: Any,
+    key: jax.Array,
+    epochs: int,
+    minibatches: int,
+) -> tuple[Any, jax.Array]:
+    """`minibatch_epochs` for recurrent learners: the rows are whole env sequences. `sequences` are time-major
+    arrays [T, envs, ...] and `starts` each env's initial hidden state [envs, ...]; each pass shuffles the envs and
+    gives `step` minibatches `(starts [envs / M, ...], sequences [T, envs / M, ...])`. The final carry and the mean
+    loss."""
+    envs = jax.tree.leaves(starts)[0].shape[0]
+
+    def epoch(carry: Any, key: jax.Array) -> tuple[Any, jax.Array]:
+        order = shuffle(key, envs).reshape(minibatches, -1)  # [M, envs / M]
+        minibatch_starts = jax.tree.map(lambda c: c[order], starts)
+        minibatch_sequences = jax.tree.map(lambda x: jnp.moveaxis(x[:, order], 1, 0), sequences)  # [M, T, E / M, ...]
+        return jax.lax.scan(step, carry, (minibatch_starts, minibatch_sequences))
 
     carry, losses = jax.lax.scan(epoch, carry, jax.random.split(key, epochs))
     return carry, losses.mean()

@@ -20,8 +20,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from amjax.agents.config import AgentConfig, static
-from amjax.agents.networks import CELLS, VECTOR_TORSO, RecurrentActorCritic, Torso, zero_carry
-from amjax.agents.optim import minibatch_step, shuffle
+from amjax.agents.networks import VECTOR_TORSO, RecurrentActorCritic, Torso, check_core_fields, zero_carry
+from amjax.agents.optim import check_sequence_minibatches, minibatch_step, sequence_minibatch_epochs
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
     clipped_loss,
@@ -33,7 +33,6 @@ from amjax.agents.ppo_core import (
 from amjax.agents.rollout import EnvBatch, FinishedEpisodes, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
-from amjax.validation import check_choice, check_positive_int
 
 
 @struct.dataclass
@@ -54,14 +53,9 @@ class PPORNNConfig(PPOBaseConfig):
         return super().from_dict(fields)
 
     def check_fields(self) -> None:
-        check_positive_int("rnn_size", self.rnn_size)
-        check_choice("cell", self.cell, CELLS)
+        check_core_fields(self.rnn_size, self.cell)
         super().check_fields()
-        if self.num_envs % self.num_minibatches:
-            raise ValueError(
-                f"num_minibatches={self.num_minibatches} must divide num_envs={self.num_envs} "
-                "(minibatches are whole env sequences)"
-            )
+        check_sequence_minibatches(self.num_envs, self.num_minibatches)
 
 
 @struct.dataclass
@@ -140,18 +134,17 @@ def update(config: PPORNNConfig, setup: Setup, state: PPORNNState) -> tuple[PPOR
         return clipped_loss(config, net.distribution, *unroll_sequences(net, params, start, obs, first), *rest)
 
     step = minibatch_step(optimizer, loss_fn)
-
-    def epoch(carry, key):
-        order = shuffle(key, config.num_envs).reshape(config.num_minibatches, -1)  # [M, E / M]
-        starts = jax.tree.map(lambda c: c[order], state.carry)
-        minibatches = jax.tree.map(lambda x: jnp.moveaxis(x[:, order], 1, 0), sequences)  # [M, T, E / M, ...]
-        return jax.lax.scan(step, carry, (starts, minibatches))
-
-    (params, opt_state), losses = jax.lax.scan(
-        epoch, (state.params, state.opt_state), jax.random.split(epoch_key, config.update_epochs)
+    (params, opt_state), loss = sequence_minibatch_epochs(
+        step,
+        (state.params, state.opt_state),
+        state.carry,
+        sequences,
+        epoch_key,
+        config.update_epochs,
+        config.num_minibatches,
     )
     new_state = PPORNNState(params, opt_state, envs, carry, key_bits(key), state.updates + 1)
-    return new_state, UpdateStats(losses.mean(), episodes)
+    return new_state, UpdateStats(loss, episodes)
 
 
 def greedy(config: PPORNNConfig, setup: Setup, params: Any, num_envs: int):

@@ -25,7 +25,7 @@ from flax import struct
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import VECTOR_TORSO, DuelingQNetwork, Torso
 from amjax.agents.optim import clipped_adam, minibatch_epochs, minibatch_step
-from amjax.agents.q_learning import epsilon, epsilon_greedy, greedy
+from amjax.agents.q_learning import epsilon, epsilon_greedy, greedy, q_lambda_targets
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
@@ -33,8 +33,9 @@ from amjax.validation import check_bool, check_choice, check_positive_int
 
 
 @struct.dataclass
-class PQNConfig(AgentConfig):
-    """PQN's fields. Static: the rollout and minibatch shapes and the network; traced: the rest."""
+class PQNBaseConfig(AgentConfig):
+    """The fields of PQN and recurrent PQN (pqn_rnn.py), with PQN's defaults. Static: the rollout and minibatch
+    shapes and the network; traced: the rest."""
 
     num_envs: int = static(16)
     num_steps: int = static(32)  # rollout length per env per update
@@ -83,6 +84,11 @@ class PQNConfig(AgentConfig):
 
 
 @struct.dataclass
+class PQNConfig(PQNBaseConfig):
+    """PQN's fields (`PQNBaseConfig`'s, with its defaults)."""
+
+
+@struct.dataclass
 class PQNState:
     params: Any
     opt_state: Any
@@ -103,7 +109,7 @@ def network(config: PQNConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -
     )
 
 
-def make_optimizer(config: PQNConfig) -> optax.GradientTransformation:
+def make_optimizer(config: PQNBaseConfig) -> optax.GradientTransformation:
     num_updates = config.total_timesteps // config.steps_per_update()
     return clipped_adam(
         config.learning_rate,
@@ -111,35 +117,6 @@ def make_optimizer(config: PQNConfig) -> optax.GradientTransformation:
         total_steps=num_updates * config.update_epochs * config.num_minibatches,
         anneal=config.anneal_lr,
     )
-
-
-def q_lambda_targets(
-    reward: jax.Array,
-    terminated: jax.Array,
-    done: jax.Array,
-    next_q: jax.Array,
-    gamma: jax.Array,
-    q_lambda: jax.Array,
-) -> jax.Array:
-    """Q(lambda) targets of a time-major rollout [T, ...]: with c_t = 0 where the episode ends at step t (`done`) or
-    t is the rollout's last step, else `q_lambda`,
-
-        G_t = r_t + gamma (1 - terminated_t) ((1 - c_t) next_q_t + c_t G_{t+1}),
-
-    where `next_q` is max_a Q(s'_t, a) of the pre-reset next observation. That is the lambda-weighted mix of the
-    n-step returns that stay inside the episode and the rollout (Watkins / Peng-style, without trace cutting)."""
-    last = jnp.zeros_like(done, dtype=bool).at[-1].set(True)
-    carries = jnp.where(jnp.logical_or(done, last), 0.0, q_lambda)
-
-    def backward(later_return, step):
-        r, term, q, c = step
-        target = r + gamma * (1.0 - term) * ((1.0 - c) * q + c * later_return)
-        return target, target
-
-    _, targets = jax.lax.scan(
-        backward, jnp.zeros_like(reward[0]), (reward, terminated.astype(reward.dtype), next_q, carries), reverse=True
-    )
-    return targets
 
 
 def init(config: PQNConfig, setup: Setup, key: jax.Array) -> PQNState:
@@ -186,4 +163,15 @@ def update(config: PQNConfig, setup: Setup, state: PQNState) -> tuple[PQNState, 
 PQN = Algorithm("pqn", PQNConfig, network, init, update, greedy, params=lambda state: state.params)
 train = make_train(PQN)
 
-__all__ = ["PQN", "PQNConfig", "PQNState", "greedy", "init", "network", "q_lambda_targets", "train", "update"]
+__all__ = [
+    "PQN",
+    "PQNBaseConfig",
+    "PQNConfig",
+    "PQNState",
+    "greedy",
+    "init",
+    "network",
+    "q_lambda_targets",
+    "train",
+    "update",
+]

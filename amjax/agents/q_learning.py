@@ -1,6 +1,7 @@
 """What Dueling DQN (dqn.py) and DRQN (drqn.py) share: their base config, the epsilon schedule and epsilon-greedy
-action, the optimiser, n-step double-Q targets and the target-network update; PQN (pqn.py) takes the epsilon
-schedule, the epsilon-greedy action and Dueling DQN's greedy test policy from here too.
+action, the optimiser, n-step double-Q targets and the target-network update. PQN and recurrent PQN (pqn.py,
+pqn_rnn.py) take from here the epsilon schedule, the epsilon-greedy action, their Q(lambda) targets and the greedy
+policies (feed-forward: Dueling DQN's; recurrent: DRQN's acting and test policies).
 
 Both algorithms are siblings of `QLearningConfig`: each adds only its own fields (DRQN: the sequence length, burn-in
 and recurrent core) and its own defaults.
@@ -8,7 +9,7 @@ and recurrent core) and its own defaults.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
 import jax
@@ -17,8 +18,9 @@ import optax
 from flax import struct
 
 from amjax.agents.config import AgentConfig, static
+from amjax.agents.networks import VECTOR_TORSO, RecurrentQNetwork, Torso, zero_carry
 from amjax.agents.optim import clipped_adam
-from amjax.agents.rollout import Transition
+from amjax.agents.rollout import EnvBatch, Transition
 from amjax.agents.setup import Setup
 from amjax.agents.training import Policy, greedy_policy
 from amjax.batching import cheap_cond, uniform_cond
@@ -113,6 +115,47 @@ def greedy(config: AgentConfig, setup: Setup, params: Any, num_envs: int) -> Pol
     return greedy_policy(lambda obs: setup.network.apply(params, obs))
 
 
+def recurrent_q_network(
+    config: AgentConfig, action_space: Any, torso: Torso = VECTOR_TORSO, layer_norm: bool = False
+) -> RecurrentQNetwork:
+    """The recurrent Q-network of a config with DRQN's network fields (`hidden`, `rnn_size`, `cell`, `activation`,
+    `dueling`) for `action_space`."""
+    return RecurrentQNetwork(
+        action_space.n,
+        tuple(config.hidden),
+        config.rnn_size,
+        config.cell,
+        config.activation,
+        config.dueling,
+        config.factored_masks,
+        torso,
+        layer_norm=layer_norm,
+    )
+
+
+def recurrent_epsilon_greedy(setup: Setup, params: Any, eps: jax.Array) -> Callable:
+    """The epsilon-greedy act function of a recurrent Q-network (DRQN, recurrent PQN), carrying its hidden state;
+    its extras are the hidden state before each step and the step's `first` flag (what a learner re-unrolls from)."""
+
+    def act(batch: EnvBatch, carry: Any, key: jax.Array):
+        new_carry, q = setup.network.apply(params, carry, batch.obs, batch.first)
+        return epsilon_greedy(q, key, eps), new_carry, (carry, batch.first)
+
+    return act
+
+
+def recurrent_greedy(config: AgentConfig, setup: Setup, params: Any, num_envs: int) -> tuple[Callable, Any]:
+    """The test policy of a recurrent Q-network (config fields `cell`, `rnn_size`): the greedy action, carrying the
+    hidden state; and a zero hidden state for `num_envs` test envs."""
+    act = recurrent_epsilon_greedy(setup, params, jnp.float32(0.0))
+
+    def greedy_act(batch: EnvBatch, carry: Any, key: jax.Array):
+        action, carry, _ = act(batch, carry, key)
+        return action, carry, None
+
+    return greedy_act, zero_carry(config.cell, config.rnn_size, (num_envs,))
+
+
 def transition_arrays(config: QLearningConfig, transitions: Transition) -> dict[str, jax.Array]:
     """The arrays of `transitions` that replay stores, rewards multiplied by `config.reward_scale` (exact at 1)."""
     return {
@@ -167,6 +210,35 @@ def td_targets(
     best = jnp.argmax(chooser, axis=-1)
     bootstrap = jnp.take_along_axis(q_next_target, best[..., None], -1)[..., 0]
     return reward + discount * bootstrap
+
+
+def q_lambda_targets(
+    reward: jax.Array,
+    terminated: jax.Array,
+    done: jax.Array,
+    next_q: jax.Array,
+    gamma: jax.Array,
+    q_lambda: jax.Array,
+) -> jax.Array:
+    """Q(lambda) targets of a time-major rollout [T, ...]: with c_t = 0 where the episode ends at step t (`done`) or
+    t is the rollout's last step, else `q_lambda`,
+
+        G_t = r_t + gamma (1 - terminated_t) ((1 - c_t) next_q_t + c_t G_{t+1}),
+
+    where `next_q` is max_a Q(s'_t, a) of the pre-reset next observation. That is the lambda-weighted mix of the
+    n-step returns that stay inside the episode and the rollout (Watkins / Peng-style, without trace cutting)."""
+    last = jnp.zeros_like(done, dtype=bool).at[-1].set(True)
+    carries = jnp.where(jnp.logical_or(done, last), 0.0, q_lambda)
+
+    def backward(later_return, step):
+        r, term, q, c = step
+        target = r + gamma * (1.0 - term) * ((1.0 - c) * q + c * later_return)
+        return target, target
+
+    _, targets = jax.lax.scan(
+        backward, jnp.zeros_like(reward[0]), (reward, terminated.astype(reward.dtype), next_q, carries), reverse=True
+    )
+    return targets
 
 
 def learn_or_wait(learning: jax.Array, learn: Any, *operands: Any) -> tuple[Any, Any, jax.Array]:

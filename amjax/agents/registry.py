@@ -11,10 +11,11 @@ from amjax.agents.drqn import DRQN
 from amjax.agents.ppo import PPO
 from amjax.agents.ppo_rnn import PPO_RNN
 from amjax.agents.pqn import PQN
+from amjax.agents.pqn_rnn import PQN_RNN
 from amjax.agents.training import Algorithm
 from amjax.presets import preset
 
-ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN, DRQN, PPO_RNN, PQN)}
+ALGORITHMS: dict[str, Algorithm] = {algo.name: algo for algo in (PPO, DQN, DRQN, PPO_RNN, PQN, PQN_RNN)}
 # What each agent is, in the words every listing of the agents uses (the commands' help, the docs).
 DESCRIPTIONS: dict[str, str] = {
     "ppo": "PPO",
@@ -22,6 +23,7 @@ DESCRIPTIONS: dict[str, str] = {
     "drqn": "recurrent Dueling Double DQN, R2D2-style sequence replay",
     "ppo-rnn": "recurrent PPO",
     "pqn": "PQN, parallelised Q-learning with Q(lambda) targets and LayerNorm",
+    "pqn-rnn": "recurrent PQN",
 }
 
 

@@ -23,10 +23,12 @@ from amjax.agents import (
     DRQN,
     PPO,
     PQN,
+    PQN_RNN,
     DQNConfig,
     DRQNConfig,
     PPOConfig,
     PQNConfig,
+    PQNRNNConfig,
     init_run,
     run_evals,
     stack_configs,
@@ -40,6 +42,7 @@ BUDGETS = {
     # about 60 s of CPU time on 2 cores (about 20 s compiling, 33 s training the 6 configurations)
     "dqn": (DQN, DQNConfig(total_timesteps=150_000, eval_every=10_000)),
     "pqn": (PQN, PQNConfig(total_timesteps=102_400, eval_every=10_240)),
+    "pqn-rnn": (PQN_RNN, PQNRNNConfig(total_timesteps=102_400, eval_every=10_240)),
 }
 
 

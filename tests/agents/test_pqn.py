@@ -1,5 +1,6 @@
 """PQN: its Q(lambda) targets against a forward-view Python reference, one-step Q-learning at lambda 0, a vmapped
-batch of configurations equal to each run alone, seed by seed, and its saved policies."""
+batch of configurations equal to each run alone, seed by seed, and its saved policies; recurrent PQN's targets
+against a step-by-step reference (its memory probe, resets and vmapped runs are in test_recurrent.py)."""
 
 from __future__ import annotations
 
@@ -12,8 +13,21 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from amjax.agents import PQN, PQNConfig, load_policy, pqn, save_policy, stack_configs, unstack_config
+from amjax.agents import (
+    PQN,
+    PQN_RNN,
+    PQNConfig,
+    PQNRNNConfig,
+    load_policy,
+    pqn,
+    pqn_rnn,
+    save_policy,
+    stack_configs,
+    unstack_config,
+)
 from amjax.agents.pqn import q_lambda_targets
+from amjax.agents.q_learning import recurrent_epsilon_greedy
+from amjax.agents.rollout import rollout
 from amjax.agents.training import evaluate
 
 T, E = 7, 3  # one shape: the jitted targets compile once for every example
@@ -112,3 +126,33 @@ def test_saved_policy_round_trip_and_actor(tmp_path):
     actor = saved.actor()
     assert [actor(obs) for obs in observations] == q_values.argmax(-1).tolist()
     assert any("LayerNorm" in name for name in state.best_params["params"]["MLP_0"])
+
+
+def test_recurrent_targets_bootstrap_from_the_carry_after_each_step():
+    """Recurrent PQN's targets against a step-by-step reference: the network called one env step at a time from a
+    mid-episode hidden state, each next observation's value one more step from the carry after its step (no reset),
+    mixed by the forward view. And the unroll the minibatches re-run from the rollout's initial hidden states
+    reproduces the acting Q-values."""
+    config = PQNRNNConfig(num_envs=3, num_steps=40, num_minibatches=1, hidden=(16,), rnn_size=8, cost=0.1)
+    setup = PQN_RNN.setup(config)
+    net, state = setup.network, pqn_rnn.init(config, setup, jax.random.key(0))
+    start = state.carry + 0.3
+    act = recurrent_epsilon_greedy(setup, state.params, jnp.float32(0.5))
+    _, last, transitions, (carries, first), _ = rollout(
+        setup.env, setup.env_params, state.envs, start, act, jax.random.key(1), config.num_steps
+    )
+    assert transitions.done.any()  # episodes end inside the rollout
+    got = np.asarray(pqn_rnn.rollout_targets(config, net, state.params, transitions, carries, last))
+    carry, acted_q, next_q = start, [], []
+    for t in range(config.num_steps):
+        carry, q = net.apply(state.params, carry, transitions.obs[t], first[t])
+        _, q_next = net.apply(state.params, carry, transitions.next_obs[t], jnp.zeros(config.num_envs, bool))
+        acted_q.append(q)
+        next_q.append(q_next.max(-1))
+    reward = config.reward_scale * np.asarray(transitions.reward)
+    terminated, done, next_q = np.asarray(transitions.terminated), np.asarray(transitions.done), np.stack(next_q)
+    for e in range(config.num_envs):
+        want = forward_view(reward[:, e], terminated[:, e], done[:, e], next_q[:, e], config.gamma, config.q_lambda)
+        np.testing.assert_allclose(got[:, e], want, rtol=1e-4, atol=1e-4)
+    _, unrolled = net.apply(state.params, start, transitions.obs, first, method="unroll")
+    np.testing.assert_allclose(unrolled, np.stack(acted_q), rtol=1e-5, atol=1e-5)

@@ -1,5 +1,5 @@
-"""Recurrent agents (DRQN, recurrent PPO): the memory probe, hidden-state resets, sequence replay, stored state +
-burn-in, and vmapped == alone.
+"""Recurrent agents (DRQN, recurrent PPO, recurrent PQN): the memory probe, hidden-state resets, sequence replay,
+stored state + burn-in, and vmapped == alone.
 
 The memory probe (amjax/envs/memory_probe.py) shows a cue only at an episode's first step and pays for naming it
 at every step: a recurrent agent earns 1 per episode, a memoryless one 1/L = 0.2 in expectation. It is used
@@ -23,9 +23,11 @@ from amjax.agents import (
     DRQNConfig,
     PPOConfig,
     PPORNNConfig,
+    PQNRNNConfig,
     agent_of,
     drqn,
     ppo_rnn,
+    pqn_rnn,
     stack_configs,
     unstack_config,
 )
@@ -34,6 +36,7 @@ from amjax.agents.replay import sequence_add, sequence_init, sequence_sample, se
 from amjax.agents.rollout import EnvBatch
 
 PROBE = {"env_id": "MemoryProbe-v0", "vanilla": True, "eval_episodes": 64}
+PQN_PROBE_STEPS = 3200
 # Small budgets: the recurrent agents reach 1.0 at their first evaluation on 2 cores.
 PROBE_CONFIGS = {
     "drqn": DRQNConfig(
@@ -52,13 +55,23 @@ PROBE_CONFIGS = {
     "ppo-rnn": PPORNNConfig(
         total_timesteps=6400, eval_every=3200, num_envs=8, num_steps=40, num_minibatches=2, **PROBE
     ),
+    "pqn-rnn": PQNRNNConfig(
+        total_timesteps=PQN_PROBE_STEPS,
+        eval_every=PQN_PROBE_STEPS // 2,
+        num_envs=8,
+        num_steps=20,
+        num_minibatches=2,
+        **PROBE,
+    ),
     "dqn": DQNConfig(total_timesteps=4000, eval_every=2000, learning_starts=500, buffer_size=4000, **PROBE),
     "ppo": PPOConfig(total_timesteps=6400, eval_every=3200, num_envs=8, num_steps=40, **PROBE),
 }
 # Three lanes per program: different seeds and traced hyperparameters.
 Q_LANES = [{"learning_rate": 5e-4}, {"learning_rate": 1e-3, "gamma": 0.95}, {"learning_rate": 3e-4, "epsilon_end": 0.1}]
 PG_LANES = [{"learning_rate": 1e-3}, {"learning_rate": 2e-3, "gamma": 0.95}, {"learning_rate": 5e-4, "ent_coef": 0.0}]
-LANES = {"drqn": Q_LANES, "dqn": Q_LANES, "ppo-rnn": PG_LANES, "ppo": PG_LANES}
+PQN_LANES = [{"learning_rate": 6e-3}, {"learning_rate": 3e-3, "gamma": 0.95}, {"learning_rate": 1e-3, "q_lambda": 0.5}]
+LANES = {"drqn": Q_LANES, "dqn": Q_LANES, "ppo-rnn": PG_LANES, "ppo": PG_LANES, "pqn-rnn": PQN_LANES}
+RECURRENT = ["drqn", "ppo-rnn", "pqn-rnn"]
 KEYS = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1, 2)])
 
 
@@ -87,7 +100,7 @@ def probe_run(training_programs):
 # -- the memory probe ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["drqn", "ppo-rnn"])
+@pytest.mark.parametrize("name", RECURRENT)
 def test_recurrent_agents_solve_the_memory_probe(name, probe_run):
     _, _, rows = probe_run(name)
     final = rows.test.costed_return[:, -1]
@@ -102,7 +115,7 @@ def test_feed_forward_agents_cannot_solve_the_memory_probe(name, probe_run):
     assert np.all(final <= 0.5), f"final test returns {final} (memoryless expectation 0.2)"
 
 
-@pytest.mark.parametrize("name", ["drqn", "ppo-rnn"])
+@pytest.mark.parametrize("name", RECURRENT)
 def test_vmapped_configuration_equals_it_alone(name, probe_run, training_programs):
     stacked, _, rows = probe_run(name)
     for i in (0, 2):
@@ -170,10 +183,10 @@ def _assert_second_episode_forgets_the_first(carries, fresh):
     assert not np.allclose(carries[SECOND - 1][0], carries[SECOND - 1][1])  # they did differ before
 
 
-@pytest.mark.parametrize("name", ["drqn", "ppo-rnn"])
+@pytest.mark.parametrize("name", RECURRENT)
 def test_hidden_state_resets_at_episode_starts_when_acting(name):
-    module, config = {"drqn": (drqn, PROBE_CONFIGS["drqn"]), "ppo-rnn": (ppo_rnn, PROBE_CONFIGS["ppo-rnn"])}[name]
-    config = config.replace(eval_episodes=2)
+    module = {"drqn": drqn, "ppo-rnn": ppo_rnn, "pqn-rnn": pqn_rnn}[name]
+    config = PROBE_CONFIGS[name].replace(eval_episodes=2)
     setup = _setup(config)
     state = module.init(config, setup, jax.random.PRNGKey(0))
     act, carry = module.greedy(config, setup, state.params, 2)
@@ -217,6 +230,15 @@ def test_straight_unroll_equals_the_loop(cell):
         rtol=1e-5,
         atol=1e-6,
     )
+
+
+def test_pqn_rnn_hidden_state_resets_inside_update_sequences():
+    config = PROBE_CONFIGS["pqn-rnn"]
+    state = pqn_rnn.init(config, _setup(config), jax.random.PRNGKey(0))
+    start = jax.random.normal(jax.random.PRNGKey(1), (2, config.rnn_size))
+    _, q = _net(config).apply(state.params, start, OBS, FIRST, method="unroll")
+    np.testing.assert_array_equal(q[SECOND:, 0], q[SECOND:, 1])
+    assert not np.allclose(q[SECOND - 1, 0], q[SECOND - 1, 1])
 
 
 def test_ppo_rnn_hidden_state_resets_inside_update_sequences():
@@ -416,6 +438,10 @@ def test_invalid_recurrent_configs_name_the_field():
         PPORNNConfig(num_envs=6, num_minibatches=4).validate()
     with pytest.raises(ValueError, match="learning_rate"):
         PPORNNConfig(learning_rate=0.0).validate()
+    with pytest.raises(ValueError, match="num_minibatches=4 must divide num_envs=6"):
+        PQNRNNConfig(num_envs=6, num_minibatches=4, num_steps=32).validate()
+    with pytest.raises(ValueError, match="cell"):
+        PQNRNNConfig(cell="rnn").validate()
 
 
 def test_lstm_cells_train_and_checkpoint_as_arrays():

@@ -12,6 +12,7 @@ from flax import serialization
 
 from amjax.agents import ALGORITHMS, PolicyFileError, agent_of, load_policy, ppo, save_policy, training_env
 from amjax.agents import drqn as drqn_module
+from amjax.agents import pqn_rnn as pqn_rnn_module
 from amjax.agents.training import evaluate
 
 PPO_CONFIG = ppo.PPOConfig(
@@ -61,12 +62,22 @@ def test_save_load_evaluate_equals_in_memory(tmp_path, trained):
     assert other["raw_return"] == other["costed_return"] == pytest.approx(saved.evaluate(key, 12)["raw_return"])
 
 
-def test_recurrent_policy_round_trip_and_actor(tmp_path):
-    config = drqn_module.DRQNConfig(env_id="CartPole-v0", cost=0.1, hidden=(16,), rnn_size=8)
-    params = drqn_module.DRQN.params(drqn_module.init(config, drqn_module.DRQN.setup(config), jax.random.key(3)))
+RECURRENT = {
+    "drqn": (drqn_module, drqn_module.DRQNConfig(env_id="CartPole-v0", cost=0.1, hidden=(16,), rnn_size=8)),
+    "pqn-rnn": (pqn_rnn_module, pqn_rnn_module.PQNRNNConfig(env_id="CartPole-v0", cost=0.1, hidden=(16,), rnn_size=8)),
+}
+
+
+@pytest.mark.parametrize("name", sorted(RECURRENT))
+def test_recurrent_policy_round_trip_and_actor(tmp_path, name):
+    """A recurrent Q-network's policy (pqn-rnn's with LayerNorm parameters) saved and loaded scores as in memory."""
+    module, config = RECURRENT[name]
+    algo = ALGORITHMS[name]
+    params = algo.params(module.init(config, algo.setup(config), jax.random.key(3)))
     saved = load_policy(save_policy(tmp_path / "r.msgpack", config, params))
+    assert saved.agent == name
     key = jax.random.key(1)
-    assert saved.evaluate(key, 5) == _in_memory(config, params, key, 5, drqn_module)
+    assert saved.evaluate(key, 5) == _in_memory(config, params, key, 5, module)
     # The one-env actor follows the batched greedy policy step by step, hidden state included.
     env, env_params, _ = training_env(config)
     obs, env_state = env.reset(jax.random.key(0), env_params)

@@ -45,8 +45,8 @@ def test_default_grid_is_the_papers_and_extended_adds_the_recurrent_agents():
     }
     assert sum(len(expand(spec)) for spec in paper.values()) == (3 + 2 + 2) * 5 * 10 == 350
     extended = replicate_grid(envs, extended=True)
-    assert all(spec.agents == ("dqn", "ppo", "drqn", "ppo-rnn", "pqn") for spec in extended.values())
-    assert sum(len(expand(spec)) for spec in extended.values()) == 3 * 5 * 5 * 10 == 750
+    assert all(spec.agents == ("dqn", "ppo", "drqn", "ppo-rnn", "pqn", "pqn-rnn") for spec in extended.values())
+    assert sum(len(expand(spec)) for spec in extended.values()) == 3 * 6 * 5 * 10 == 900
     assert replicate_grid(("Acrobot-v1",), ("drqn",))["Acrobot-v1"].agents == ("drqn",)
 
 
