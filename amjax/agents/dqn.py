@@ -25,7 +25,7 @@ from amjax.agents.networks import VECTOR_TORSO, DuelingQNetwork, Torso
 from amjax.agents.q_learning import (
     QLearningConfig,
     epsilon,
-    epsilon_greedy,
+    epsilon_greedy_act,
     greedy,
     learn_or_wait,
     make_optimizer,
@@ -107,11 +107,7 @@ def update(config: DQNConfig, setup: Setup, state: DQNState) -> tuple[DQNState, 
     rollout_key, learn_key, key = jax.random.split(fast_key(state.key), 3)
 
     # 1. Act epsilon-greedily for train_freq steps and store the transitions.
-    eps = epsilon(config, state.env_steps)
-
-    def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        return epsilon_greedy(network.apply(state.params, batch.obs), key, eps), carry, None
-
+    act = epsilon_greedy_act(setup, state.params, epsilon(config, state.env_steps))
     envs, _, transitions, _, episodes = rollout(
         setup.env, setup.env_params, state.envs, None, act, rollout_key, config.train_freq
     )

@@ -25,7 +25,7 @@ from flax import struct
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import VECTOR_TORSO, DuelingQNetwork, Torso
 from amjax.agents.optim import clipped_adam, minibatch_epochs, minibatch_step
-from amjax.agents.q_learning import epsilon, epsilon_greedy, greedy, q_lambda_targets
+from amjax.agents.q_learning import epsilon, epsilon_greedy_act, greedy, q_lambda_targets
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
@@ -131,11 +131,7 @@ def update(config: PQNConfig, setup: Setup, state: PQNState) -> tuple[PQNState, 
     rollout_key, epoch_key, key = jax.random.split(fast_key(state.key), 3)
 
     # 1. Act epsilon-greedily for num_steps steps of every env.
-    eps = epsilon(config, state.env_steps)
-
-    def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        return epsilon_greedy(network.apply(state.params, batch.obs), key, eps), carry, None
-
+    act = epsilon_greedy_act(setup, state.params, epsilon(config, state.env_steps))
     envs, _, transitions, _, episodes = rollout(
         setup.env, setup.env_params, state.envs, None, act, rollout_key, config.num_steps
     )

@@ -133,6 +133,15 @@ def recurrent_q_network(
     )
 
 
+def epsilon_greedy_act(setup: Setup, params: Any, eps: jax.Array) -> Callable:
+    """The epsilon-greedy act function of a feed-forward Q-network (Dueling DQN, PQN), for `rollout`."""
+
+    def act(batch: EnvBatch, carry: Any, key: jax.Array):
+        return epsilon_greedy(setup.network.apply(params, batch.obs), key, eps), carry, None
+
+    return act
+
+
 def recurrent_epsilon_greedy(setup: Setup, params: Any, eps: jax.Array) -> Callable:
     """The epsilon-greedy act function of a recurrent Q-network (DRQN, recurrent PQN), carrying its hidden state;
     its extras are the hidden state before each step and the step's `first` flag (what a learner re-unrolls from)."""
