@@ -35,8 +35,9 @@ ENV_ID = "LunarLander-v3"
 SOLVED = 200.0
 
 # PPO hyperparameters: the RL Baselines3 Zoo's tuned LunarLander entry (sources and details in amjax/presets.py).
-# Differences that remain: amjax clips the value loss with clip_eps (SB3 does not by default) and initialises with a
-# scaled normal instead of orthogonal matrices (amjax/agents/networks.py).
+# Differences that remain: amjax clips the value loss with clip_eps (SB3 does not by default), scales the rewards by
+# 0.01 (since 2026-11-28; the committed policy was trained before, unscaled) and initialises with a scaled normal
+# instead of orthogonal matrices (amjax/agents/networks.py).
 HYPERPARAMS = LUNAR_LANDER_PPO
 TOTAL_TIMESTEPS = 64 * 16 * 1024  # 1,048,576 (the Zoo's 1e6, rounded to whole updates)
 EVAL_EVERY = 4 * 16 * 1024  # 16 evaluations

@@ -301,6 +301,11 @@ def dueling_head(
 CELLS = ("gru", "lstm")
 
 
+def check_activation(activation: Any) -> None:
+    """ValueError naming `activation` unless it is one of `ACTIVATIONS`."""
+    check_choice("activation", activation, tuple(ACTIVATIONS))
+
+
 def check_core_fields(rnn_size: Any, cell: Any) -> None:
     """ValueError naming `rnn_size` (a positive int) or `cell` (one of `CELLS`) if either is bad."""
     check_positive_int("rnn_size", rnn_size)

@@ -1,6 +1,6 @@
 """The optimiser every agent uses (global-norm clipping + Adam, optional linear decay to zero), the gradient step
 that PPO, PQN and their recurrent versions scan over minibatches, and the epochs of shuffled minibatches they run
-(of rows for PPO and PQN, of whole env sequences for the recurrent ones)."""
+(of rows for PPO and PQN, of whole env sequences for the recurrent ones), with the checks of their shapes."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import optax
+
+from amjax.validation import check_positive_int
 
 
 def clipped_adam(
@@ -29,6 +31,37 @@ def clipped_adam(
         return learning_rate * (1.0 - jnp.minimum(count, total_steps) / max(total_steps, 1))
 
     return optax.chain(optax.clip_by_global_norm(max_grad_norm), optax.adam(schedule, eps=eps))
+
+
+def epoch_optimizer(config: Any, eps: float = 1e-8) -> optax.GradientTransformation:
+    """`clipped_adam` for an agent that runs `update_epochs` x `num_minibatches` gradient steps per update of
+    `steps_per_update()` env steps (PPO, PQN and their recurrent versions): the learning rate, when annealed,
+    reaches 0 at the end of training."""
+    num_updates = config.total_timesteps // config.steps_per_update()
+    return clipped_adam(
+        config.learning_rate,
+        config.max_grad_norm,
+        total_steps=num_updates * config.update_epochs * config.num_minibatches,
+        anneal=config.anneal_lr,
+        eps=eps,
+    )
+
+
+def check_epoch_fields(num_envs: Any, num_steps: Any, update_epochs: Any, num_minibatches: Any) -> None:
+    """ValueError naming the first of a rollout's shape and its epochs of minibatches that is not a positive int."""
+    for name, value in (
+        ("num_envs", num_envs),
+        ("num_steps", num_steps),
+        ("update_epochs", update_epochs),
+        ("num_minibatches", num_minibatches),
+    ):
+        check_positive_int(name, value)
+
+
+def check_row_minibatches(num_envs: int, num_steps: int, num_minibatches: int) -> None:
+    """ValueError unless `num_minibatches` divides the rollout's num_envs x num_steps rows (`minibatch_epochs`)."""
+    if (num_envs * num_steps) % num_minibatches:
+        raise ValueError(f"num_minibatches={num_minibatches} must divide num_envs * num_steps = {num_envs * num_steps}")
 
 
 def minibatch_step(

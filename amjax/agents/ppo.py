@@ -18,7 +18,7 @@ from flax import struct
 from amjax import strategy
 from amjax.agents.config import static
 from amjax.agents.networks import VECTOR_TORSO, ActorCritic, Torso
-from amjax.agents.optim import minibatch_epochs, minibatch_step, shuffle
+from amjax.agents.optim import check_row_minibatches, minibatch_epochs, minibatch_step, shuffle
 from amjax.agents.ppo_core import (
     PPOBaseConfig,
     clipped_loss,
@@ -42,10 +42,7 @@ class PPOConfig(PPOBaseConfig):
 
     def check_fields(self) -> None:
         super().check_fields()
-        if self.steps_per_update() % self.num_minibatches:
-            raise ValueError(
-                f"num_minibatches={self.num_minibatches} must divide num_envs * num_steps = {self.steps_per_update()}"
-            )
+        check_row_minibatches(self.num_envs, self.num_steps, self.num_minibatches)
 
 
 @struct.dataclass

@@ -19,9 +19,10 @@ import optax
 from flax import struct
 
 from amjax.agents.config import AgentConfig, static
-from amjax.agents.optim import clipped_adam
+from amjax.agents.networks import check_activation
+from amjax.agents.optim import check_epoch_fields, epoch_optimizer
 from amjax.agents.policies import Distribution, for_action_space
-from amjax.validation import check_bool, check_choice, check_positive_int, check_real
+from amjax.validation import check_bool, check_choice, check_real
 
 EVAL_POLICIES = ("greedy", "stochastic", "greedy_control")
 
@@ -74,9 +75,8 @@ class PPOBaseConfig(AgentConfig):
         return self.num_envs * self.num_steps
 
     def check_fields(self) -> None:
-        for name in ("num_envs", "num_steps", "update_epochs", "num_minibatches"):
-            check_positive_int(name, getattr(self, name))
-        check_choice("activation", self.activation, ("tanh", "relu", "elu"))
+        check_epoch_fields(self.num_envs, self.num_steps, self.update_epochs, self.num_minibatches)
+        check_activation(self.activation)
         check_choice("eval_policy", self.eval_policy, EVAL_POLICIES)
         check_bool("clip_value", self.clip_value)
         check_real("reward_scale", self.reward_scale, low=0.0, low_inclusive=False)
@@ -100,14 +100,7 @@ def policy_distribution(config: PPOBaseConfig, action_space: Any) -> Distributio
 
 
 def make_optimizer(config: PPOBaseConfig) -> optax.GradientTransformation:
-    num_updates = config.total_timesteps // config.steps_per_update()
-    return clipped_adam(
-        config.learning_rate,
-        config.max_grad_norm,
-        total_steps=num_updates * config.update_epochs * config.num_minibatches,
-        anneal=config.anneal_lr,
-        eps=1e-5,
-    )
+    return epoch_optimizer(config, eps=1e-5)
 
 
 def gae(

@@ -23,13 +23,19 @@ import optax
 from flax import struct
 
 from amjax.agents.config import AgentConfig, static
-from amjax.agents.networks import VECTOR_TORSO, DuelingQNetwork, Torso
-from amjax.agents.optim import clipped_adam, minibatch_epochs, minibatch_step
+from amjax.agents.networks import VECTOR_TORSO, DuelingQNetwork, Torso, check_activation
+from amjax.agents.optim import (
+    check_epoch_fields,
+    check_row_minibatches,
+    epoch_optimizer,
+    minibatch_epochs,
+    minibatch_step,
+)
 from amjax.agents.q_learning import epsilon, epsilon_greedy_act, greedy, q_lambda_targets
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
-from amjax.validation import check_bool, check_choice, check_positive_int
+from amjax.validation import check_bool
 
 
 @struct.dataclass
@@ -71,15 +77,11 @@ class PQNBaseConfig(AgentConfig):
         return self.num_envs * self.num_steps
 
     def check_fields(self) -> None:
-        for name in ("num_envs", "num_steps", "update_epochs", "num_minibatches"):
-            check_positive_int(name, getattr(self, name))
-        check_choice("activation", self.activation, ("tanh", "relu", "elu"))
+        check_epoch_fields(self.num_envs, self.num_steps, self.update_epochs, self.num_minibatches)
+        check_activation(self.activation)
         check_bool("layer_norm", self.layer_norm)
         check_bool("dueling", self.dueling)
-        if self.steps_per_update() % self.num_minibatches:
-            raise ValueError(
-                f"num_minibatches={self.num_minibatches} must divide num_envs * num_steps = {self.steps_per_update()}"
-            )
+        check_row_minibatches(self.num_envs, self.num_steps, self.num_minibatches)
         super().check_fields()
 
 
@@ -110,13 +112,7 @@ def network(config: PQNConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -
 
 
 def make_optimizer(config: PQNBaseConfig) -> optax.GradientTransformation:
-    num_updates = config.total_timesteps // config.steps_per_update()
-    return clipped_adam(
-        config.learning_rate,
-        config.max_grad_norm,
-        total_steps=num_updates * config.update_epochs * config.num_minibatches,
-        anneal=config.anneal_lr,
-    )
+    return epoch_optimizer(config)
 
 
 def init(config: PQNConfig, setup: Setup, key: jax.Array) -> PQNState:

@@ -17,8 +17,9 @@ Q(s, a).
 Differences from the reference (github.com/mttga/purejaxql, `pqn_rnn_gymnax.py`): Adam where it uses RAdam;
 truncations bootstrap; the targets are computed once per rollout from the acting parameters (as in pqn.py), not
 recomputed from each minibatch's own forward pass; the network sees the observation only (the reference also feeds
-it the previous action and done flag), and each sequence starts from the hidden state stored with it (the reference
-prepends the previous rollout's last 4 steps); the defaults are sized for amjax's CartPole budgets (docs/pqn.md).
+it the previous action and done flag; the env option `extra_obs=("last_action",)` adds the former), and each
+sequence starts from the hidden state stored with it (the reference prepends the previous rollout's last 4 steps);
+the defaults are sized for amjax's CartPole budgets (docs/pqn.md).
 """
 
 from __future__ import annotations

@@ -18,13 +18,13 @@ import optax
 from flax import struct
 
 from amjax.agents.config import AgentConfig, static
-from amjax.agents.networks import VECTOR_TORSO, RecurrentQNetwork, Torso, zero_carry
+from amjax.agents.networks import VECTOR_TORSO, RecurrentQNetwork, Torso, check_activation, zero_carry
 from amjax.agents.optim import clipped_adam
 from amjax.agents.rollout import EnvBatch, Transition
 from amjax.agents.setup import Setup
 from amjax.agents.training import Policy, greedy_policy
 from amjax.batching import cheap_cond, uniform_cond
-from amjax.validation import check_choice, check_positive_int
+from amjax.validation import check_positive_int
 
 
 @struct.dataclass
@@ -80,7 +80,7 @@ class QLearningConfig(AgentConfig):
         ):
             check_positive_int(name, getattr(self, name))
         check_positive_int("learning_starts", self.learning_starts, minimum=0)
-        check_choice("activation", self.activation, ("tanh", "relu", "elu"))
+        check_activation(self.activation)
         super().check_fields()
 
 

@@ -28,7 +28,8 @@ def test_replication_grid_is_the_papers():
     assert lunar["ppo"].eval_policy == "greedy_control"  # a costed run's greedy policy crashes (docs/eval_policy.md)
     assert lunar["dqn"].gamma == pytest.approx(0.99) and lunar["dqn"].steps_per_update() == 4
     assert (lunar["dqn"].num_envs, lunar["dqn"].train_freq, lunar["drqn"].train_freq) == (4, 1, 8)
-    assert (lunar["dqn"].reward_scale, lunar["drqn"].reward_scale) == (0.1, 1.0)  # scaled rewards: DQN's preset only
+    # scaled rewards: DQN's and PPO's presets (PPO's critic, docs/lunar_lander.md), not DRQN
+    assert (lunar["dqn"].reward_scale, lunar["ppo"].reward_scale, lunar["drqn"].reward_scale) == (0.1, 0.01, 1.0)
     assert presets.replicate_specs(("LunarLander-v3",), ("drqn",))["LunarLander-v3"].hyperparams == {}
 
 
