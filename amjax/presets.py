@@ -21,7 +21,7 @@ from __future__ import annotations
 # -311 to -658), the whole stochastic policy 87 / 83 / 80. A vanilla run is greedy either way. The initial policy
 # measures with probability 0.9 (`measure_prior`): from the uniform policy's 0.5 PPO kept measuring on about half
 # the steps even at cost 0 (re-scored 127 there on the tuning seeds, 193 with 0.9; docs/eval_policy.md). Rewards
-# scaled by 0.01: returns of -100 to +300 at gamma 0.999 left the clipped critic (0.2 per update) far behind, and
+# scaled by 0.01: returns of -200 to +300 at gamma 0.999 left the clipped critic (0.2 per update) far behind, and
 # the costed lander learned to hover; scaled, PPO's median best rose from 217 / 193 / 179 to 285 / 269 / 245 at
 # costs 0 / 0.1 / 0.3 on the tuning seeds (docs/lunar_lander.md, "PPO's critic").
 LUNAR_LANDER_PPO: dict[str, object] = {

@@ -122,7 +122,7 @@ def test_ppo_keeps_measuring_on_acrobot_under_cost():
 
 @pytest.mark.slow
 def test_ppo_lands_under_cost_on_lunar_lander():
-    """The critic lag this catches (docs/lunar_lander.md, "PPO's critic"): with unscaled rewards (returns of -100 to
+    """The critic lag this catches (docs/lunar_lander.md, "PPO's critic"): with unscaled rewards (returns of -200 to
     +300 at gamma 0.999) value clipping lets PPO's critic move 0.2 per update, and at cost 0.3 the lander learns to
     hover, paying for measurements through long episodes: the costed returns of the training episodes that ended in
     steps 196-262k were -52 / -107 / -112 on the tuning seeds 100-102, against -17 / -32 / -22 with the preset's
