@@ -44,11 +44,15 @@ from train.presets import PRESETS  # noqa: E402
 
 
 def _parse_value(text: str) -> Any:
+    """One `--set` value: a Python literal; `true` / `false` in any case as booleans (as YAML and JSON write
+    them); else a bare word, or a tuple of values where commas separate bare words (relu,tanh)."""
     try:
         return ast.literal_eval(text)
     except (ValueError, SyntaxError):
         if "," in text:  # bare words among the values, e.g. relu,tanh
             return tuple(_parse_value(part) for part in text.split(","))
+        if text.strip().lower() in ("true", "false"):
+            return text.strip().lower() == "true"
         return text  # a bare word, e.g. relu
 
 
@@ -125,7 +129,8 @@ def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
         default=[],
         metavar="NAME=V[,V...]",
         help="a hyperparameter value or list of values, e.g. learning_rate=1e-3,3e-4 or ppo.num_envs=16 "
-        "(traced fields are vmapped; static ones such as hidden=(128,128) compile separately)",
+        "(traced fields are vmapped; static ones such as hidden=(128,128) compile separately; booleans as "
+        "True/False or true/false)",
     )
     sweep.add_argument(
         "--env-defaults",

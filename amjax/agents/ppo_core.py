@@ -22,7 +22,7 @@ from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import check_activation
 from amjax.agents.optim import check_epoch_fields, epoch_optimizer
 from amjax.agents.policies import Distribution, for_action_space
-from amjax.validation import check_bool, check_choice, check_real
+from amjax.validation import check_bool, check_choice
 
 EVAL_POLICIES = ("greedy", "stochastic", "greedy_control")
 
@@ -39,9 +39,6 @@ class PPOBaseConfig(AgentConfig):
     activation: str = static("tanh")
     anneal_lr: bool = static(True)  # linear decay of the learning rate to 0 over training
     clip_value: bool = static(True)  # clip the value update to clip_eps around the rollout's values
-    # Rewards (costs included) are multiplied by this before GAE and the value targets. Static: a per-environment
-    # constant, and at 1.0 the program is exactly today's (a traced 1.0 changes XLA's float rounding).
-    reward_scale: float = static(1.0)
     # The test policy (evaluations, re-scoring, saved policies): "greedy" (the most probable action),
     # "stochastic" (the policy as trained) or "greedy_control" (the most probable control, measuring as the policy
     # draws it). A memoryless greedy policy repeats itself on a stale observation (policies.py, docs/eval_policy.md).
@@ -57,6 +54,7 @@ class PPOBaseConfig(AgentConfig):
     # measure logits' initial biases (networks.policy_head). 0.5 is the uniform policy. Near 1 the agent starts as
     # the always-measure baseline and learns where it can skip (docs/eval_policy.md). Ignored by vanilla runs.
     measure_prior: float = 0.5
+    reward_scale: float = 1.0  # rewards (costs included) are multiplied by this before GAE and the value targets
 
     WIDTH_FIELDS: ClassVar[tuple[str, ...]] = ("hidden",)
     ACTION_SPACES: ClassVar[tuple[str, ...]] = ("Discrete", "Box")  # categorical or Gaussian + Bernoulli head
@@ -69,6 +67,7 @@ class PPOBaseConfig(AgentConfig):
         "vf_coef": "nonnegative",
         "max_grad_norm": "positive",
         "measure_prior": "probability",
+        "reward_scale": "positive",
     }
 
     def steps_per_update(self) -> int:
@@ -79,7 +78,6 @@ class PPOBaseConfig(AgentConfig):
         check_activation(self.activation)
         check_choice("eval_policy", self.eval_policy, EVAL_POLICIES)
         check_bool("clip_value", self.clip_value)
-        check_real("reward_scale", self.reward_scale, low=0.0, low_inclusive=False)
         super().check_fields()
 
 
@@ -131,7 +129,10 @@ def gae(
 def rollout_advantages(config: PPOBaseConfig, transitions: Any, values: jax.Array, next_values: jax.Array):
     """`gae` of a rollout's transitions ([T, E]): advantages and value targets, with `next_values` the values of
     the pre-reset next observations (so a truncated episode bootstraps and a terminated one does not)."""
-    rewards = transitions.reward if config.reward_scale == 1.0 else config.reward_scale * transitions.reward
+    # Exactly the unscaled program's rewards at 1.0: a product, even by 1.0, can be fused into the GAE arithmetic
+    # (a fused multiply-add rounds differently), so rows of unscaled runs would change in the last bits.
+    scale = config.reward_scale
+    rewards = jnp.where(scale == 1.0, transitions.reward, scale * transitions.reward)
     return gae(
         rewards,
         values,

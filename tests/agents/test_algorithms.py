@@ -137,7 +137,8 @@ def test_replay_ring_and_sampling():
 @pytest.mark.parametrize("name", ["ppo", "dqn", "ppo-box"])
 def test_seeds_determinism_and_vmap_equals_alone(name, assert_batch_equals_alone, training_programs):
     base = TINY[name]
-    configs = [base.replace(cost=c, learning_rate=lr) for c, lr in [(0.0, 1e-3), (0.2, 3e-4), (0.1, 5e-4)]]
+    lanes = [(0.0, 1e-3, 1.0), (0.2, 3e-4, 0.1), (0.1, 5e-4, 0.5)]  # cost, learning rate, reward scale: all traced
+    configs = [base.replace(cost=c, learning_rate=lr, reward_scale=rs) for c, lr, rs in lanes]
     keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1, 2)])
     assert_batch_equals_alone(ALGOS[name], configs, keys)
     stacked = stack_configs(configs)

@@ -48,6 +48,10 @@ def test_default_grid_is_the_papers_and_extended_adds_the_recurrent_agents():
     extended = replicate_grid(envs, extended=True)
     assert all(spec.agents == ("dqn", "ppo", "drqn", "ppo-rnn", "pqn", "pqn-rnn") for spec in extended.values())
     assert sum(len(expand(spec)) for spec in extended.values()) == 3 * 6 * 5 * 10 == 900
+    # PQN's LunarLander-v3 preset (gamma 0.995, docs/pqn.md), not recurrent PQN's nor on other envs
+    gammas = {(r.env, r.agent): r.config.gamma for spec in extended.values() for r in expand(spec)}
+    assert gammas["LunarLander-v3", "pqn"] == pytest.approx(0.995)
+    assert gammas["LunarLander-v3", "pqn-rnn"] == gammas["Acrobot-v1", "pqn"] == pytest.approx(0.99)
     assert replicate_grid(("Acrobot-v1",), ("drqn",))["Acrobot-v1"].agents == ("drqn",)
 
 

@@ -515,6 +515,17 @@ def test_cli_sweep_starts_each_env_from_its_tuned_defaults():
     assert expand(spec_from_args(args))[0].config.reward_scale == 1.0
 
 
+def test_cli_set_reads_true_and_false_in_any_case():
+    """`--set` takes booleans as Python writes them and as YAML and JSON do (true, FALSE), alone and in lists."""
+    from train.cli import build_parser, spec_from_args
+
+    flags = ["sweep", "--agent", "pqn", "--seeds", "1", "--out", "x", "--set", "pqn.dueling=true,False"]
+    args = build_parser().parse_args([*flags, "--set", "pqn.layer_norm=FALSE", "--set", "pqn.activation=tanh"])
+    configs = [r.config for r in expand(spec_from_args(args))]
+    assert sorted({c.dueling for c in configs}) == [False, True]
+    assert all(c.layer_norm is False and c.activation == "tanh" for c in configs)
+
+
 @pytest.mark.parametrize("env", sorted(ENV_PRESETS))
 def test_the_cli_and_the_library_build_the_same_configs(env):
     """One source of defaults: for every env with presets and every agent, the command line, `SweepSpec` from
