@@ -5,6 +5,7 @@ from amjax import analysis
 results, summary, metadata = analysis.load_results("runs/x")
 analysis.learning_curves(results, path="curves.png")        # every plot returns a matplotlib Figure
 analysis.paper_table(summary, results)                        # the paper's table, ours beside its numbers
+analysis.seed_spread(summary)                                 # mean, sd, min and max over seeds beside it
 analysis.write_report("runs/x")                               # runs/x/report/report.md + figures
 ```
 
@@ -31,7 +32,7 @@ from amjax.analysis.results import (
     load_results,
     sweep_progress,
 )
-from amjax.analysis.tables import paper_table, to_markdown
+from amjax.analysis.tables import paper_table, seed_spread, to_markdown
 
 __all__ = [
     "PAPER_ALWAYS_MEASURE",
@@ -53,6 +54,7 @@ __all__ = [
     "record_agent",
     "record_measurements",
     "save_figure",
+    "seed_spread",
     "sweep_progress",
     "to_markdown",
     "vanilla_vs_cost0",

@@ -17,7 +17,7 @@ from matplotlib.figure import Figure
 from amjax.analysis import plots
 from amjax.analysis.maps import plot_measurement_map, record_agent
 from amjax.analysis.results import SweepData, hyper_columns, load_results, sweep_progress
-from amjax.analysis.tables import paper_table, to_markdown
+from amjax.analysis.tables import paper_table, seed_spread, to_markdown
 
 _MAX_ROWS = 80  # longer per-configuration tables go to per_config.csv only
 _TABLE_LABELS = {
@@ -34,6 +34,12 @@ _TABLE_LABELS = {
     "gain_vs_always_measure": "gain vs always",
     "paper_best_return": "paper",
     "paper_always_measure": "paper always measure",
+}
+
+_SPREAD_LABELS = {
+    f"{column}_{stat}": f"{label} {stat}"
+    for column, label in (("best_return", "best"), ("rescored_return", "re-scored"))
+    for stat in ("mean", "sd", "min", "max")
 }
 
 _FIGURES: list[tuple[str, str, str]] = [
@@ -121,11 +127,17 @@ def _spec_lines(data: SweepData) -> list[str]:
 
 def format_paper_table(table: pd.DataFrame) -> pd.DataFrame:
     """The paper table (`tables.paper_table`) with readable column names and a setting column."""
+    return _readable(table, _TABLE_LABELS)
+
+
+def _readable(table: pd.DataFrame, labels: dict[str, str]) -> pd.DataFrame:
+    """`table` with a setting column ("vanilla" / "cost c") for its vanilla and cost columns, `labels` applied, and
+    columns without any value dropped."""
     shown = table.copy()
     shown.insert(
         2, "setting", ["vanilla" if v else f"cost {c:g}" for v, c in zip(shown.vanilla, shown.cost, strict=True)]
     )
-    shown = shown.drop(columns=["vanilla", "cost"]).rename(columns=_TABLE_LABELS)
+    shown = shown.drop(columns=["vanilla", "cost"]).rename(columns=labels)
     return shown.dropna(axis=1, how="all")
 
 
@@ -210,6 +222,15 @@ def write_report(
     table = paper_table(data.summary, data.results)
     lines += [to_markdown(format_paper_table(table)), ""]
     table.to_csv(out / "paper_table.csv", index=False)
+    lines += [
+        "## Spread over seeds",
+        "",
+        "The same settings: mean, standard deviation, minimum and maximum over seeds of the best test costed return "
+        "and of the re-scored return (the medians and quartiles are in the table above).",
+        "",
+        to_markdown(_readable(seed_spread(data.summary), _SPREAD_LABELS)),
+        "",
+    ]
 
     for name, heading, caption in _FIGURES:
         lines += [f"## {heading}", ""]

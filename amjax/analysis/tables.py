@@ -78,6 +78,24 @@ def paper_table(summary: pd.DataFrame, results: pd.DataFrame | None = None) -> p
     return pd.DataFrame(rows, columns=keys + PAPER_TABLE_COLUMNS)
 
 
+def seed_spread(summary: pd.DataFrame) -> pd.DataFrame:
+    """The spread over seeds beside `paper_table`'s medians: one row per env x agent x (vanilla, cost) (x swept
+    hyperparameters) with the mean, sample standard deviation, minimum and maximum over seeds of the best test
+    costed return and of the re-scored return (NaN where a column is missing or has under two seeds for the sd)."""
+    keys = SETTING + [c for c in hyper_columns(summary) if summary[c].nunique(dropna=False) > 1]
+    stats = {"mean": "mean", "sd": "std", "min": "min", "max": "max"}
+    rows = []
+    for key, group in summary.groupby(keys, dropna=False, sort=True):
+        row: dict[str, Any] = dict(zip(keys, key, strict=True), seeds=int(group.seed.nunique()))
+        for column, name in (("best_return", "best_return"), ("best_policy_return", "rescored_return")):
+            values = group.get(column, pd.Series([np.nan])).astype(float)
+            values = values[np.isfinite(values)]
+            for label, method in stats.items():
+                row[f"{name}_{label}"] = float(getattr(values, method)()) if len(values) else np.nan
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def _cell(value: Any, digits: int) -> str:
     if isinstance(value, bool | np.bool_):
         return "yes" if value else "no"

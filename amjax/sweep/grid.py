@@ -73,6 +73,18 @@ class SweepSpec:
         data = dataclasses.asdict(self) | {"env_defaults": self.resolved_env_defaults()}
         return json.loads(json.dumps(data, default=list))
 
+    def identity(self) -> dict[str, Any]:
+        """What makes two specs the same sweep: `to_json` with each env's defaults cut to the keys that reach this
+        sweep's agents (unscoped ones and those scoped to one of them), so that a preset added later for another
+        agent does not change the identity of a folder made before it."""
+        data = self.to_json()
+        data["env_defaults"] = {
+            env: kept
+            for env, values in data["env_defaults"].items()
+            if (kept := {k: v for k, v in values.items() if "." not in k or k.partition(".")[0] in self.agents})
+        }
+        return data
+
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> SweepSpec:
         """The spec `to_json` wrote (a cluster worker's, or a folder's metadata). JSON keeps no tuples, so they are

@@ -98,7 +98,7 @@ def _check_folder(out: Path, spec: SweepSpec, compare: bool = True) -> bool:
         raise SweepMismatchError(
             f"out: {meta_path} is not a sweep's metadata ({error}); choose another folder"
         ) from None
-    if compare and (stored is None or stored.to_json() != spec.to_json()):  # older files: defaults filled
+    if compare and (stored is None or stored.identity() != spec.identity()):  # older files: defaults filled
         raise SweepMismatchError(f"out: {out} holds a different sweep (see its metadata.json); choose another folder")
     return True
 

@@ -175,6 +175,20 @@ def test_paper_table_by_hand():
     assert np.isnan(analysis.paper_table(summary).always_measure).all()  # no results: no bound from data
 
 
+def test_seed_spread_by_hand():
+    summary, _ = _hand_tables()
+    spread = analysis.seed_spread(summary.assign(best_policy_return=summary.best_return - 1.0))
+    cart = spread.set_index(["env", "agent", "vanilla", "cost"]).loc[("CartPole-v0", "dqn", False, 0.1)]
+    best = np.array([170.0, 186.0, 194.0, 200.0])
+    assert cart.seeds == 4
+    assert (cart.best_return_mean, cart.best_return_min, cart.best_return_max) == (187.5, 170.0, 200.0)
+    assert cart.best_return_sd == pytest.approx(np.std(best, ddof=1))  # the sample sd, over seeds
+    assert cart.rescored_return_mean == 186.5 and cart.rescored_return_sd == pytest.approx(cart.best_return_sd)
+    one = spread.set_index(["env", "agent", "vanilla", "cost"]).loc[("CartPole-v0", "dqn", True, 0.0)]
+    assert one.seeds == 1 and one.best_return_mean == 200.0 and np.isnan(one.best_return_sd)
+    assert analysis.seed_spread(summary).rescored_return_mean.isna().all()  # not re-scored: NaN, not an error
+
+
 def test_paper_table_on_sweep_and_markdown(data):
     table = analysis.paper_table(data.summary, data.results)
     assert len(table) == 3 and set(table.seeds) == {2}
@@ -333,6 +347,7 @@ def test_write_report(sweep_dir, tmp_path):
         _nonempty_image(report.parent / "figures" / f"{name}.png")
         _nonempty_image(report.parent / "figures" / f"{name}.svg")
     assert len(pd.read_csv(report.parent / "paper_table.csv")) == 3
+    assert "## Spread over seeds" in text and "| best sd |" in text  # beside the medians, one row per setting
     # Measurement maps of the saved best policies: one figure per env x agent, one panel per cost.
     assert "figures/maps_CartPole-v0_ppo.png" in text and "cost 0.2: seed" in text
     _nonempty_image(report.parent / "figures" / "maps_CartPole-v0_ppo.png")

@@ -45,7 +45,9 @@ SPEC, OPTIONS = MAKE.SPEC, MAKE.OPTIONS
 
 def test_the_stored_spec_reads_back_as_the_spec_that_wrote_it():
     stored = json.loads((DATA / "full" / "metadata.json").read_text())["spec"]
-    assert SweepSpec.from_json(stored).to_json() == SPEC.to_json() == stored
+    assert SweepSpec.from_json(stored).to_json() == stored
+    # The same sweep as today's spec: presets added since for other agents (PQN's on CartPole) are not its own.
+    assert SweepSpec.from_json(stored).identity() == SPEC.identity()
     assert SweepSpec.from_json(stored).hyperparams == SPEC.hyperparams  # tuples restored: ("since_measured",)
 
 

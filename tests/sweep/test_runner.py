@@ -347,6 +347,21 @@ def test_folder_with_another_sweep_is_refused(tmp_path, full_run, capsys):
     assert {p: p.stat().st_mtime_ns for p in full_run.out.rglob("*")} == before  # nothing rewritten
 
 
+def test_a_preset_added_for_another_agent_leaves_a_folder_resumable(full_run, monkeypatch):
+    """A folder is identified by the presets of its own agents: a CartPole preset added for Dueling DQN after a PPO
+    sweep was written leaves it resumable; one added for PPO makes it another sweep, refused before any write."""
+    before = {p: p.stat().st_mtime_ns for p in full_run.out.rglob("*")}
+    cartpole = dict(ENV_PRESETS.get("CartPole-v0", {}))
+    monkeypatch.setitem(ENV_PRESETS, "CartPole-v0", {**cartpole, "dqn.n_step": 5})
+    assert TINY.to_json()["env_defaults"]["CartPole-v0"]["dqn.n_step"] == 5  # stored in full, as before
+    assert "dqn.n_step" not in TINY.identity()["env_defaults"].get("CartPole-v0", {})
+    run_sweep(TINY, full_run.out, progress=False)  # finished already: nothing to train
+    monkeypatch.setitem(ENV_PRESETS, "CartPole-v0", {**cartpole, "ppo.ent_coef": 0.02})
+    with pytest.raises(SweepMismatchError, match="different sweep"):
+        run_sweep(TINY, full_run.out, progress=False)
+    assert {p for p in full_run.out.rglob("*")} == set(before)
+
+
 @pytest.mark.parametrize(
     ("flags", "message"),
     [
@@ -578,6 +593,9 @@ def test_a_python_spec_stores_the_presets_it_used():
     a command-line sweep of the same grid resumes it."""
     spec = SweepSpec(envs=("CartPole-v0", "Acrobot-v1"), agents=("ppo",))
     stored = spec.to_json()["env_defaults"]
-    assert stored == json.loads(json.dumps({"Acrobot-v1": ENV_PRESETS["Acrobot-v1"]}, default=list))
+    presets = {env: ENV_PRESETS[env] for env in ("CartPole-v0", "Acrobot-v1")}
+    assert stored == json.loads(json.dumps(presets, default=list))
+    ppo_only = {"Acrobot-v1": {k: v for k, v in ENV_PRESETS["Acrobot-v1"].items() if k.startswith("ppo.")}}
+    assert spec.identity()["env_defaults"] == json.loads(json.dumps(ppo_only, default=list))  # CartPole's is PQN's
     assert SweepSpec.from_json(spec.to_json()).to_json() == spec.to_json()
     assert SweepSpec(envs=("Acrobot-v1",), env_defaults={}).to_json()["env_defaults"] == {}
