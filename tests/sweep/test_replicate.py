@@ -52,6 +52,10 @@ def test_default_grid_is_the_papers_and_extended_adds_the_recurrent_agents():
     gammas = {(r.env, r.agent): r.config.gamma for spec in extended.values() for r in expand(spec)}
     assert gammas["LunarLander-v3", "pqn"] == pytest.approx(0.995)
     assert gammas["LunarLander-v3", "pqn-rnn"] == gammas["Acrobot-v1", "pqn"] == pytest.approx(0.99)
+    # PQN's CartPole-v0 preset (a 64x64 network), not recurrent PQN's nor on other envs
+    widths = {(r.env, r.agent): tuple(r.config.hidden) for spec in extended.values() for r in expand(spec)}
+    assert widths["CartPole-v0", "pqn"] == (64, 64) and widths["CartPole-v0", "pqn-rnn"] == (64,)
+    assert widths["Acrobot-v1", "pqn"] == widths["LunarLander-v3", "pqn"] == (128, 128)
     assert replicate_grid(("Acrobot-v1",), ("drqn",))["Acrobot-v1"].agents == ("drqn",)
 
 
