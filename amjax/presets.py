@@ -12,6 +12,9 @@ the folders of the others resumable.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+from typing import Any
+
 # PPO on LunarLander: the RL Baselines3 Zoo's tuned LunarLander-v2 entry (hyperparams/ppo.yml in
 # DLR-RM/rl-baselines3-zoo: n_envs 16, n_timesteps 1e6, n_steps 1024, batch_size 64, gae_lambda 0.98, gamma 0.999,
 # n_epochs 4, ent_coef 0.01) with SB3's PPO defaults for the rest (learning_rate 3e-4 constant, clip_range 0.2,
@@ -127,13 +130,14 @@ ENV_PRESETS: dict[str, dict[str, object]] = {
 }
 
 
+def for_agents(values: Mapping[str, Any], agents: Sequence[str]) -> dict[str, Any]:
+    """`values` ("field" or "agent.field": value) restricted to `agents`: keys scoped to another agent dropped."""
+    return {key: value for key, value in values.items() if "." not in key or key.partition(".")[0] in agents}
+
+
 def env_hyperparams(env: str, agents: tuple[str, ...]) -> dict[str, object]:
     """`ENV_PRESETS[env]` restricted to `agents` (keys scoped to another agent dropped)."""
-    return {
-        key: value
-        for key, value in ENV_PRESETS.get(env, {}).items()
-        if "." not in key or key.partition(".")[0] in agents
-    }
+    return for_agents(ENV_PRESETS.get(env, {}), agents)
 
 
 def preset(env_id: str, agent: str) -> dict[str, object]:
@@ -154,6 +158,7 @@ __all__ = [
     "LUNAR_LANDER_PQN",
     "PENDULUM_PPO",
     "env_hyperparams",
+    "for_agents",
     "preset",
     "scoped",
 ]

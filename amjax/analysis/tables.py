@@ -30,6 +30,11 @@ PAPER_TABLE_COLUMNS = [
 ]
 
 
+def _setting_keys(summary: pd.DataFrame) -> list[str]:
+    """The columns a table's rows are grouped by: env, agent, vanilla, cost and every swept hyperparameter."""
+    return SETTING + [c for c in hyper_columns(summary) if summary[c].nunique(dropna=False) > 1]
+
+
 def paper_table(summary: pd.DataFrame, results: pd.DataFrame | None = None) -> pd.DataFrame:
     """One row per env x agent x (vanilla, cost) (x swept hyperparameters), like the paper's results table.
 
@@ -44,7 +49,7 @@ def paper_table(summary: pd.DataFrame, results: pd.DataFrame | None = None) -> p
       gain_vs_always_measure: best_return - always_measure;
       paper_best_return, paper_always_measure: the paper's numbers where it gives them (else NaN).
     """
-    keys = SETTING + [c for c in hyper_columns(summary) if summary[c].nunique(dropna=False) > 1]
+    keys = _setting_keys(summary)
     rows = []
     for key, group in summary.groupby(keys, dropna=False, sort=True):
         row: dict[str, Any] = dict(zip(keys, key, strict=True))
@@ -82,7 +87,7 @@ def seed_spread(summary: pd.DataFrame) -> pd.DataFrame:
     """The spread over seeds beside `paper_table`'s medians: one row per env x agent x (vanilla, cost) (x swept
     hyperparameters) with the mean, sample standard deviation, minimum and maximum over seeds of the best test
     costed return and of the re-scored return (NaN where a column is missing or has under two seeds for the sd)."""
-    keys = SETTING + [c for c in hyper_columns(summary) if summary[c].nunique(dropna=False) > 1]
+    keys = _setting_keys(summary)
     stats = {"mean": "mean", "sd": "std", "min": "min", "max": "max"}
     rows = []
     for key, group in summary.groupby(keys, dropna=False, sort=True):

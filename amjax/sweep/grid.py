@@ -15,7 +15,7 @@ from typing import Any
 from amjax.agents import ALGORITHMS, AgentConfig
 from amjax.agents.config import nearest_schedule
 from amjax.envs.registry import make_env
-from amjax.presets import ENV_PRESETS
+from amjax.presets import ENV_PRESETS, for_agents
 from amjax.validation import check_choice, check_positive_int, check_real
 from amjax.wrappers.spec import MeasureSpec
 
@@ -79,9 +79,7 @@ class SweepSpec:
         agent does not change the identity of a folder made before it."""
         data = self.to_json()
         data["env_defaults"] = {
-            env: kept
-            for env, values in data["env_defaults"].items()
-            if (kept := {k: v for k, v in values.items() if "." not in k or k.partition(".")[0] in self.agents})
+            env: kept for env, values in data["env_defaults"].items() if (kept := for_agents(values, self.agents))
         }
         return data
 
