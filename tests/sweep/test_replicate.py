@@ -57,6 +57,10 @@ def test_default_grid_is_the_papers_and_extended_adds_the_recurrent_agents():
     assert widths["CartPole-v0", "pqn"] == (64, 64) and widths["CartPole-v0", "pqn-rnn"] == (64,)
     assert widths["Acrobot-v1", "pqn"] == widths["LunarLander-v3", "pqn"] == (128, 128)
     assert replicate_grid(("Acrobot-v1",), ("drqn",))["Acrobot-v1"].agents == ("drqn",)
+    # DRQN's Acrobot-v1 preset (rewards x 0.1, docs/acrobot.md run 14), not recurrent PPO's nor on other envs
+    scales = {(r.env, r.agent): r.config.reward_scale for spec in extended.values() for r in expand(spec)}
+    assert scales["Acrobot-v1", "drqn"] == pytest.approx(0.1)
+    assert scales["Acrobot-v1", "ppo-rnn"] == scales["CartPole-v0", "drqn"] == scales["LunarLander-v3", "drqn"] == 1.0
 
 
 @pytest.mark.slow
