@@ -60,7 +60,19 @@ def test_default_grid_is_the_papers_and_extended_adds_the_recurrent_agents():
     # DRQN's Acrobot-v1 preset (rewards x 0.1, docs/acrobot.md run 14), not recurrent PPO's nor on other envs
     scales = {(r.env, r.agent): r.config.reward_scale for spec in extended.values() for r in expand(spec)}
     assert scales["Acrobot-v1", "drqn"] == pytest.approx(0.1)
-    assert scales["Acrobot-v1", "ppo-rnn"] == scales["CartPole-v0", "drqn"] == scales["LunarLander-v3", "drqn"] == 1.0
+    assert scales["CartPole-v0", "drqn"] == scales["LunarLander-v3", "drqn"] == 1.0
+    # recurrent PPO's LunarLander-v3 preset (rewards x 0.01, the stochastic test policy; docs/lunar_lander.md)
+    configs = {(r.env, r.agent): r.config for spec in extended.values() for r in expand(spec)}
+    lander = configs["LunarLander-v3", "ppo-rnn"]
+    assert (lander.reward_scale, lander.eval_policy) == (pytest.approx(0.01), "stochastic")
+    # recurrent PPO's Acrobot-v1 preset (PPO's fixes and a measure prior of 0.9; docs/acrobot.md run 15)
+    acrobot = configs["Acrobot-v1", "ppo-rnn"]
+    assert (acrobot.reward_scale, acrobot.update_epochs, acrobot.clip_value) == (pytest.approx(0.1), 10, False)
+    assert (acrobot.ent_coef, acrobot.measure_prior) == (0.0, pytest.approx(0.9))
+    assert (configs["CartPole-v0", "ppo-rnn"].reward_scale, configs["CartPole-v0", "ppo-rnn"].eval_policy) == (
+        1.0,
+        "greedy",
+    )
 
 
 @pytest.mark.slow
