@@ -36,7 +36,7 @@ from amjax.agents import (
     run_evals,
     stack_configs,
 )
-from amjax.presets import env_hyperparams, preset
+from amjax.presets import preset
 
 SEEDS = (0, 1, 2)
 COSTS = (0.0, 0.2)
@@ -100,9 +100,14 @@ def test_drqn_skips_measurements_at_the_default_budget():
     assert np.median(best_measured) < 0.4, message
 
 
-def ppo_preset(env_id: str) -> dict[str, object]:
-    """The preset's PPO hyperparameters for `env_id` as PPOConfig fields (the "ppo." scope dropped)."""
-    return {key.partition(".")[2]: value for key, value in env_hyperparams(env_id, ("ppo",)).items()}
+def assert_keeps_measuring_and_reaches_goal(rows, min_measured: float) -> None:
+    """On Acrobot-v1: every seed's training episodes of the last evaluation period measure on more than
+    `min_measured` of their steps, and their median length is under 250 steps (unsolved episodes stop at 500)."""
+    measured = np.asarray(rows.train.measured_fraction)[:, -1]
+    length = np.asarray(rows.train.length)[:, -1]
+    message = f"training episodes' measured fractions {measured.round(3).tolist()}, lengths {length.round(1).tolist()}"
+    assert np.all(measured > min_measured), message  # no seed stops measuring ...
+    assert np.median(length) < 250, message  # ... and they reach the goal
 
 
 @pytest.mark.slow
@@ -111,15 +116,12 @@ def test_ppo_keeps_measuring_on_acrobot_under_cost():
     40k steps. With the old defaults (unscaled rewards) it fails on every seed tried; with Acrobot's preset but a
     clipped critic, 3 of these 12 seeds collapse (measured 0.06 / 0.07 / 0.04 in steps 20k-41k; the lowest
     unclipped seed measures 0.20)."""
-    preset = ppo_preset("Acrobot-v1")
     seeds = list(range(12))
-    config = PPOConfig(env_id="Acrobot-v1", cost=0.3, total_timesteps=40_960, eval_every=20_480, **preset)
+    config = PPOConfig(
+        env_id="Acrobot-v1", cost=0.3, total_timesteps=40_960, eval_every=20_480, **preset("Acrobot-v1", "ppo")
+    )
     rows = train_rows(PPO, [config] * len(seeds), seeds)
-    measured = np.asarray(rows.train.measured_fraction)[:, -1]  # the last 20,480 steps' episodes
-    length = np.asarray(rows.train.length)[:, -1]
-    message = f"training episodes' measured fractions {measured.round(3).tolist()}, lengths {length.round(1).tolist()}"
-    assert np.all(measured > 0.1), message  # no seed stops measuring ...
-    assert np.median(length) < 250, message  # ... and they reach the goal (Acrobot stops unsolved at 500 steps)
+    assert_keeps_measuring_and_reaches_goal(rows, min_measured=0.1)  # the last 20,480 steps' episodes
 
 
 @pytest.mark.slow
@@ -133,11 +135,7 @@ def test_recurrent_ppo_keeps_measuring_on_acrobot_under_cost():
     )
     seeds = list(range(6))
     rows = train_rows(PPO_RNN, [config] * len(seeds), seeds)
-    measured = np.asarray(rows.train.measured_fraction)[:, -1]  # the last 20,480 steps' episodes
-    length = np.asarray(rows.train.length)[:, -1]
-    message = f"training episodes' measured fractions {measured.round(3).tolist()}, lengths {length.round(1).tolist()}"
-    assert np.all(measured > 0.2), message  # no seed stops measuring ...
-    assert np.median(length) < 250, message  # ... and they reach the goal (Acrobot stops unsolved at 500 steps)
+    assert_keeps_measuring_and_reaches_goal(rows, min_measured=0.2)  # the last 20,480 steps' episodes
 
 
 @pytest.mark.slow
@@ -147,8 +145,9 @@ def test_ppo_lands_under_cost_on_lunar_lander():
     hover, paying for measurements through long episodes: the costed returns of the training episodes that ended in
     steps 196-262k were -52 / -107 / -112 on the tuning seeds 100-102, against -17 / -32 / -22 with the preset's
     scaled rewards. 16 updates of the preset (its schedules do not depend on the budget)."""
-    preset = ppo_preset("LunarLander-v3")
-    config = PPOConfig(env_id="LunarLander-v3", cost=0.3, total_timesteps=262_144, eval_every=65_536, **preset)
+    config = PPOConfig(
+        env_id="LunarLander-v3", cost=0.3, total_timesteps=262_144, eval_every=65_536, **preset("LunarLander-v3", "ppo")
+    )
     rows = train_rows(PPO, [config] * len(SEEDS), list(SEEDS))
     costed = np.asarray(rows.train.costed_return)[:, -1]  # the episodes that ended in the last 65,536 steps
     length = np.asarray(rows.train.length)[:, -1]
@@ -160,8 +159,9 @@ def test_ppo_lands_under_cost_on_lunar_lander():
 def test_ppo_swings_up_pendulum():
     """Box control: PPO's Gaussian head with Pendulum-v1's preset (vanilla) swings the pendulum up and holds it.
     Gymnasium-style returns: about -1,200 for a random policy, -150 for a good one (episodes of 200 steps)."""
-    preset = ppo_preset("Pendulum-v1")
-    config = PPOConfig(env_id="Pendulum-v1", vanilla=True, total_timesteps=204_800, eval_every=20_480, **preset)
+    config = PPOConfig(
+        env_id="Pendulum-v1", vanilla=True, total_timesteps=204_800, eval_every=20_480, **preset("Pendulum-v1", "ppo")
+    )
     rows = train_rows(PPO, [config] * len(SEEDS), list(SEEDS))
     best = np.asarray(rows.test.raw_return).max(axis=1)
     assert np.median(best) >= -200, f"best test returns per seed {best.round(1).tolist()}"

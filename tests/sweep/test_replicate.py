@@ -49,20 +49,20 @@ def test_default_grid_is_the_papers_and_extended_adds_the_recurrent_agents():
     assert all(spec.agents == ("dqn", "ppo", "drqn", "ppo-rnn", "pqn", "pqn-rnn") for spec in extended.values())
     assert sum(len(expand(spec)) for spec in extended.values()) == 3 * 6 * 5 * 10 == 900
     # PQN's LunarLander-v3 preset (gamma 0.995, docs/pqn.md), not recurrent PQN's nor on other envs
-    gammas = {(r.env, r.agent): r.config.gamma for spec in extended.values() for r in expand(spec)}
+    configs = {(r.env, r.agent): r.config for spec in extended.values() for r in expand(spec)}
+    gammas = {key: config.gamma for key, config in configs.items()}
     assert gammas["LunarLander-v3", "pqn"] == pytest.approx(0.995)
     assert gammas["LunarLander-v3", "pqn-rnn"] == gammas["Acrobot-v1", "pqn"] == pytest.approx(0.99)
     # PQN's CartPole-v0 preset (a 64x64 network), not recurrent PQN's nor on other envs
-    widths = {(r.env, r.agent): tuple(r.config.hidden) for spec in extended.values() for r in expand(spec)}
+    widths = {key: tuple(config.hidden) for key, config in configs.items()}
     assert widths["CartPole-v0", "pqn"] == (64, 64) and widths["CartPole-v0", "pqn-rnn"] == (64,)
     assert widths["Acrobot-v1", "pqn"] == widths["LunarLander-v3", "pqn"] == (128, 128)
     assert replicate_grid(("Acrobot-v1",), ("drqn",))["Acrobot-v1"].agents == ("drqn",)
-    # DRQN's Acrobot-v1 preset (rewards x 0.1, docs/acrobot.md run 14), not recurrent PPO's nor on other envs
-    scales = {(r.env, r.agent): r.config.reward_scale for spec in extended.values() for r in expand(spec)}
+    # DRQN's Acrobot-v1 preset (rewards x 0.1, docs/acrobot.md run 14), not on other envs
+    scales = {key: config.reward_scale for key, config in configs.items()}
     assert scales["Acrobot-v1", "drqn"] == pytest.approx(0.1)
     assert scales["CartPole-v0", "drqn"] == scales["LunarLander-v3", "drqn"] == 1.0
     # recurrent PPO's LunarLander-v3 preset (rewards x 0.01, the stochastic test policy; docs/lunar_lander.md)
-    configs = {(r.env, r.agent): r.config for spec in extended.values() for r in expand(spec)}
     lander = configs["LunarLander-v3", "ppo-rnn"]
     assert (lander.reward_scale, lander.eval_policy) == (pytest.approx(0.01), "stochastic")
     # recurrent PPO's Acrobot-v1 preset (PPO's fixes and a measure prior of 0.9; docs/acrobot.md run 15)
