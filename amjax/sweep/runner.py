@@ -99,8 +99,45 @@ def _check_folder(out: Path, spec: SweepSpec, compare: bool = True) -> bool:
             f"out: {meta_path} is not a sweep's metadata ({error}); choose another folder"
         ) from None
     if compare and (stored is None or stored.identity() != spec.identity()):  # older files: defaults filled
-        raise SweepMismatchError(f"out: {out} holds a different sweep (see its metadata.json); choose another folder")
+        differences = (
+            identity_differences(stored.identity(), spec.identity())
+            if stored is not None
+            else ["its metadata.json names no sweep spec"]
+        )
+        raise SweepMismatchError(
+            f"out: {out} holds a different sweep; {'; '.join(differences)}. Rerun with the folder's settings to resume "
+            "it (its metadata.json has them), or choose another folder"
+        )
     return True
+
+
+def identity_differences(stored: Mapping[str, Any], new: Mapping[str, Any], limit: int = 6) -> list[str]:
+    """What differs between a folder's sweep identity (`SweepSpec.identity`) and this call's, one phrase per
+    differing entry (nested dicts followed down: `env_defaults["Acrobot-v1"]["drqn.reward_scale"]`), at most
+    `limit` of them and a count of the rest."""
+    found = []
+
+    def walk(a: Any, b: Any, path: str) -> None:
+        if isinstance(a, Mapping) or isinstance(b, Mapping):  # a dict on one side only: against an empty one
+            a, b = ({} if x is _UNSET else x for x in (a, b))
+        if isinstance(a, Mapping) and isinstance(b, Mapping):
+            for key in [*a, *(k for k in b if k not in a)]:
+                walk(a.get(key, _UNSET), b.get(key, _UNSET), f"{path}[{json.dumps(key)}]" if path else str(key))
+        elif a != b:
+            found.append(f"{path}: the folder has {_shown(a)}, this sweep {_shown(b)}")
+
+    walk(stored, new, "")
+    shown = found[:limit] + ([f"and {len(found) - limit} more"] if len(found) > limit else [])
+    if any(phrase.startswith("env_defaults") for phrase in found):
+        shown.append("env_defaults are the library's presets (amjax.presets): one changed since the folder was made")
+    return shown
+
+
+_UNSET = object()
+
+
+def _shown(value: Any) -> str:
+    return "none" if value is _UNSET else json.dumps(value, default=str)
 
 
 def _claim_folder(out: Path, spec: SweepSpec, runs: Sequence[RunConfig], extra: Mapping[str, Any]) -> None:

@@ -19,6 +19,7 @@ from amjax.agents import ALGORITHMS, config_for
 from amjax.files import atomic_write, folder_lock
 from amjax.presets import ENV_PRESETS, preset
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, expand, group_runs, run_sweep
+from amjax.sweep.runner import identity_differences
 from amjax.sweep.storage import load_checkpoint, save_checkpoint, seed_table, summarize
 from train.cli import main
 
@@ -323,8 +324,9 @@ def test_folder_busy_with_another_process_is_refused(tmp_path, full_run, capsys)
 def test_folder_with_another_sweep_is_refused(tmp_path, full_run, capsys):
     other = SweepSpec(**{**TINY.__dict__, "costs": (0.2,)})
     before = {p: p.stat().st_mtime_ns for p in full_run.out.rglob("*")}
-    with pytest.raises(SweepMismatchError, match="different sweep"):
+    with pytest.raises(SweepMismatchError, match="different sweep") as refused:
         run_sweep(other, full_run.out, progress=False)
+    assert "costs: the folder has [0.0, 0.3], this sweep [0.2]" in str(refused.value)  # names what differs
     code = main(
         [
             "sweep",
@@ -343,8 +345,24 @@ def test_folder_with_another_sweep_is_refused(tmp_path, full_run, capsys):
             "--no-progress",
         ]
     )
-    assert code == 2 and "different sweep" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert code == 2 and "different sweep" in err and "this sweep [0.5]" in err and "total_timesteps" not in err
     assert {p: p.stat().st_mtime_ns for p in full_run.out.rglob("*")} == before  # nothing rewritten
+
+
+def test_identity_differences_name_each_differing_entry_and_count_the_rest():
+    stored = TINY.identity()
+    assert identity_differences(stored, TINY.identity()) == []
+    changed = {**stored, "seeds": [5], "hyperparams": {**stored["hyperparams"], "num_envs": 8, "gamma": 0.9}}
+    assert identity_differences(stored, changed) == [
+        "seeds: the folder has [0, 1], this sweep [5]",
+        'hyperparams["num_envs"]: the folder has 4, this sweep 8',
+        'hyperparams["gamma"]: the folder has none, this sweep 0.9',
+    ]
+    many = {key: "x" for key in stored}
+    shown = identity_differences(stored, many, limit=3)
+    assert len(shown) == 5 and shown[3] == f"and {len(stored) - 3} more"  # the env_defaults line after the count
+    assert "amjax.presets" in shown[4]
 
 
 def test_a_preset_added_for_another_agent_leaves_a_folder_resumable(full_run, monkeypatch):
@@ -357,8 +375,10 @@ def test_a_preset_added_for_another_agent_leaves_a_folder_resumable(full_run, mo
     assert "dqn.n_step" not in TINY.identity()["env_defaults"].get("CartPole-v0", {})
     run_sweep(TINY, full_run.out, progress=False)  # finished already: nothing to train
     monkeypatch.setitem(ENV_PRESETS, "CartPole-v0", {**cartpole, "ppo.ent_coef": 0.02})
-    with pytest.raises(SweepMismatchError, match="different sweep"):
+    with pytest.raises(SweepMismatchError, match="different sweep") as refused:
         run_sweep(TINY, full_run.out, progress=False)
+    assert 'env_defaults["CartPole-v0"]["ppo.ent_coef"]: the folder has none, this sweep 0.02' in str(refused.value)
+    assert "amjax.presets" in str(refused.value)
     assert {p for p in full_run.out.rglob("*")} == set(before)
 
 
