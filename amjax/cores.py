@@ -36,13 +36,29 @@ def usable_cores() -> int:
 
 
 def cpu_model() -> str:
-    """The CPU's model name (/proc/cpuinfo's, else the platform's), e.g. "AMD EPYC": with the device count, what
-    sets XLA's float rounding, so runs are bit-identical only where both are the same."""
+    """The CPU's model name (/proc/cpuinfo's, else the platform's), e.g. "AMD EPYC". With `cpu_vector_isa` and the
+    device count, what sets XLA's float rounding, so runs are bit-identical only where all three are the same."""
     try:
         with open("/proc/cpuinfo") as cpuinfo:
             return next(line.split(":", 1)[1].strip() for line in cpuinfo if line.startswith("model name"))
     except (OSError, StopIteration):
         return platform.processor() or platform.machine() or "unknown CPU"
+
+
+# The widest x86 vector extension the CPU reports, as /proc/cpuinfo names it, and how we write it.
+_VECTOR_ISAS = (("avx512f", "AVX-512"), ("avx2", "AVX2"), ("avx", "AVX"))
+
+
+def cpu_vector_isa() -> str:
+    """The widest x86 vector extension the CPU has ("AVX-512", "AVX2", "AVX"; "" where /proc/cpuinfo does not say).
+    XLA compiles for the host's own extensions, so one model name can round differently: two 2-core "AMD EPYC"
+    machines, one with AVX-512 and one without, trained the README's demo to different tables (2026-11-29)."""
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            flags = next(line.split(":", 1)[1].split() for line in cpuinfo if line.startswith("flags"))
+    except (OSError, StopIteration):
+        return ""
+    return next((name for flag, name in _VECTOR_ISAS if flag in flags), "")
 
 
 # Loops that access less than this many bytes per iteration (HloCostAnalysis) become one kernel each.

@@ -79,9 +79,12 @@ def commit() -> str:
 
 def machine() -> dict[str, Any]:
     """What the numbers were taken on."""
+    from amjax.cores import cpu_vector_isa  # imports JAX without starting it
+
     return {
         "host": platform.node(),
         "cpu": cpu_model(),
+        "cpu_vector_isa": cpu_vector_isa(),  # XLA compiles for it: rounding differs between extensions
         "cpus": os.cpu_count(),
         "affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "memory_gib": memory_gib(),

@@ -17,7 +17,7 @@ import jax
 import pandas as pd
 
 import amjax
-from amjax.cores import cpu_model
+from amjax.cores import cpu_model, cpu_vector_isa
 
 # The CLI is an application: every core for its sweeps, asked for before gymnax (imported below) starts JAX.
 amjax.use_all_cores()
@@ -222,11 +222,12 @@ def _value_text(value: Any) -> str:
 
 
 def describe_devices() -> str:
-    """What a sweep's configurations are split over, e.g. "2 CPU devices (AMD EPYC)": results are bit-identical
-    only on the same count and CPU model (XLA's float rounding depends on both, and training amplifies it)."""
+    """What a sweep's configurations are split over, e.g. "2 CPU devices (AMD EPYC, AVX-512)": results are
+    bit-identical only on the same count, CPU model and vector extensions (XLA's float rounding depends on all
+    three, and training amplifies it)."""
     devices = sweep_devices()
     kind = devices[0].platform.upper()
-    model = cpu_model() if kind == "CPU" else devices[0].device_kind
+    model = ", ".join(filter(None, (cpu_model(), cpu_vector_isa()))) if kind == "CPU" else devices[0].device_kind
     return f"{len(devices)} {kind} device{'s' if len(devices) > 1 else ''} ({model})"
 
 

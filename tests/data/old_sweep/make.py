@@ -7,6 +7,12 @@ The folders were written this way at commit 3043e65 (2026-11-28), before `Measur
 with one JAX CPU device (the default; results across device counts agree only to float rounding); `expected.json`
 holds what the old code's saved policies score on fixed keys. `make.py resume FOLDER` reruns the same sweep into
 FOLDER (what a user does to resume it; the test runs it with today's code, on one device).
+
+The tables are bit for bit what the machine that wrote them computes; another CPU rounds differently. So
+`machine.json` names that machine, as today's amjax describes it (run with today's code on the path, on the same
+machine: `python tests/data/old_sweep/make.py machine tests/data/old_sweep`). Rewritten on 2026-11-29 on a 2-core
+AMD EPYC with AVX-512 (the first folders, from a machine not recorded, differed from these only in the last bits of
+the loss column, by up to 2e-6).
 """
 
 from __future__ import annotations
@@ -72,8 +78,17 @@ def main(root: Path) -> None:
     (root / "expected.json").write_text(json.dumps(scores, indent=1, sort_keys=True) + "\n")
 
 
+def machine() -> dict[str, str]:
+    """This machine as the test compares it (today's `amjax.cores`)."""
+    from amjax.cores import cpu_model, cpu_vector_isa
+
+    return {"cpu": cpu_model(), "cpu_vector_isa": cpu_vector_isa()}
+
+
 if __name__ == "__main__":
     if sys.argv[1] == "resume":
         run_sweep(SPEC, Path(sys.argv[2]), **OPTIONS)
+    elif sys.argv[1] == "machine":
+        (Path(sys.argv[2]) / "machine.json").write_text(json.dumps(machine(), indent=1) + "\n")
     else:
         main(Path(sys.argv[1]))
