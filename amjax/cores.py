@@ -52,7 +52,7 @@ _VECTOR_ISAS = (("avx512f", "AVX-512"), ("avx2", "AVX2"), ("avx", "AVX"))
 def cpu_vector_isa() -> str:
     """The widest x86 vector extension the CPU has ("AVX-512", "AVX2", "AVX"; "" where /proc/cpuinfo does not say).
     XLA compiles for the host's own extensions, so one model name can round differently: two 2-core "AMD EPYC"
-    machines, one with AVX-512 and one without, trained the README's demo to different tables (2026-11-29)."""
+    machines, one with AVX-512, trained the README's demo to different tables (2026-11-29)."""
     try:
         with open("/proc/cpuinfo") as cpuinfo:
             flags = next(line.split(":", 1)[1].split() for line in cpuinfo if line.startswith("flags"))
