@@ -61,6 +61,12 @@ def cpu_vector_isa() -> str:
     return next((name for flag, name in _VECTOR_ISAS if flag in flags), "")
 
 
+def cpu_description() -> str:
+    """The CPU's model and widest vector extension, e.g. "AMD EPYC, AVX-512": the machine a result is bit for bit
+    reproducible on (with the same device count)."""
+    return ", ".join(filter(None, (cpu_model(), cpu_vector_isa())))
+
+
 # Loops that access less than this many bytes per iteration (HloCostAnalysis) become one kernel each.
 SMALL_LOOP_BYTES = 100_000_000
 _SMALL_LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"

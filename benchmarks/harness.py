@@ -116,8 +116,9 @@ def command_line() -> str:
     """The command that is running, as a user would type it from the repository: `python -m PACKAGE ...` for a
     package's `__main__.py`, else `python benchmarks/SCRIPT.py ...` (arguments quoted as a shell needs)."""
     script = Path(sys.argv[0]).resolve()
-    if script.name == "__main__.py":
-        head = ["python", "-m", ".".join(script.parent.relative_to(ROOT).parts)]
+    if script.name == "__main__.py":  # an installed package's (`python -m pytest`): its name alone
+        parts = script.parent.relative_to(ROOT).parts if script.is_relative_to(ROOT) else (script.parent.name,)
+        head = ["python", "-m", ".".join(parts)]
     else:
         head = ["python", str(script.relative_to(ROOT)) if script.is_relative_to(ROOT) else script.name]
     return shlex.join([*head, *sys.argv[1:]])

@@ -17,7 +17,7 @@ import jax
 import pandas as pd
 
 import amjax
-from amjax.cores import cpu_model, cpu_vector_isa
+from amjax.cores import cpu_description
 
 # The CLI is an application: every core for its sweeps, asked for before gymnax (imported below) starts JAX.
 amjax.use_all_cores()
@@ -227,7 +227,7 @@ def describe_devices() -> str:
     three, and training amplifies it)."""
     devices = sweep_devices()
     kind = devices[0].platform.upper()
-    model = ", ".join(filter(None, (cpu_model(), cpu_vector_isa()))) if kind == "CPU" else devices[0].device_kind
+    model = cpu_description() if kind == "CPU" else devices[0].device_kind
     return f"{len(devices)} {kind} device{'s' if len(devices) > 1 else ''} ({model})"
 
 

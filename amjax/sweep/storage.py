@@ -1,7 +1,7 @@
 """Files of a sweep: atomic writes, msgpack checkpoints of train states, the tidy results table and summaries.
 
 Layout of an output folder:
-  metadata.json        the sweep spec, package versions, git revision (written once; identifies the sweep)
+  metadata.json        the sweep spec, package versions, git revision, CPU (written once; identifies the sweep)
   results.parquet/.csv one row per configuration x evaluation point
   summary.parquet/.csv one row per configuration: best costed reward, final values, measurement reduction
   rescored.parquet/.csv one row per finished configuration: its best policy on fresh test episodes
@@ -32,6 +32,7 @@ import pandas as pd
 from flax import serialization
 
 import amjax
+from amjax.cores import cpu_description
 from amjax.files import atomic_write
 
 KEY_COLUMNS = ["config_id", "env_steps"]
@@ -267,6 +268,7 @@ def environment_info() -> dict[str, Any]:
         "git_revision": revision,
         "python": platform.python_version(),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+        "cpu": cpu_description(),  # rows are bit for bit the same only on this CPU (and device count)
         "jax_backend": jax.default_backend(),
         "jax_devices": len(jax.local_devices()),  # the sweep's configurations are spread over these
     }

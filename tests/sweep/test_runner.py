@@ -16,6 +16,7 @@ import pandas as pd
 import pytest
 
 from amjax.agents import ALGORITHMS, config_for
+from amjax.cores import cpu_description
 from amjax.files import atomic_write, folder_lock
 from amjax.presets import ENV_PRESETS, preset
 from amjax.sweep import FolderBusyError, SweepMismatchError, SweepSpec, expand, group_runs, run_sweep
@@ -126,6 +127,7 @@ def test_full_run_tables(full_run):
         assert (full_run.out / f"{stem}.parquet").exists() and (full_run.out / f"{stem}.csv").exists()
     meta = (full_run.out / "metadata.json").read_text()
     assert '"jax"' in meta and '"spec"' in meta
+    assert json.loads(meta)["cpu"] == cpu_description() != ""  # the machine its rows are bit for bit reproducible on
     # Summary: best = max over evaluations, per configuration, recomputed by hand.
     for config_id, rows in results.groupby("config_id"):
         row = summary.set_index("config_id").loc[config_id]
