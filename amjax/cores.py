@@ -35,14 +35,19 @@ def usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+def _cpuinfo(field: str) -> str | None:
+    """The value of /proc/cpuinfo's first `field` line (its first CPU's), or None where there is none."""
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            return next((line.split(":", 1)[1].strip() for line in cpuinfo if line.startswith(field)), None)
+    except OSError:
+        return None
+
+
 def cpu_model() -> str:
     """The CPU's model name (/proc/cpuinfo's, else the platform's), e.g. "AMD EPYC". With `cpu_vector_isa` and the
     device count, what sets XLA's float rounding, so runs are bit-identical only where all three are the same."""
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            return next(line.split(":", 1)[1].strip() for line in cpuinfo if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor() or platform.machine() or "unknown CPU"
+    return _cpuinfo("model name") or platform.processor() or platform.machine() or "unknown CPU"
 
 
 # The widest x86 vector extension the CPU reports, as /proc/cpuinfo names it, and how we write it.
@@ -53,11 +58,7 @@ def cpu_vector_isa() -> str:
     """The widest x86 vector extension the CPU has ("AVX-512", "AVX2", "AVX"; "" where /proc/cpuinfo does not say).
     XLA compiles for the host's own extensions, so one model name can round differently: two 2-core "AMD EPYC"
     machines, one with AVX-512, trained the README's demo to different tables (2026-11-29)."""
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            flags = next(line.split(":", 1)[1].split() for line in cpuinfo if line.startswith("flags"))
-    except (OSError, StopIteration):
-        return ""
+    flags = (_cpuinfo("flags") or "").split()
     return next((name for flag, name in _VECTOR_ISAS if flag in flags), "")
 
 

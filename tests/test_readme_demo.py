@@ -46,6 +46,11 @@ def readme_block(table: str, devices: str) -> str:
     return f"\n```\n{table}\n```\n\n{NOTE.format(devices=devices)}\n"
 
 
+def block_table(block: str) -> str:
+    """The table inside a README block (`readme_block`'s)."""
+    return block.split("```")[1].strip("\n")
+
+
 def test_printed_table_is_found_in_the_demo_output():
     stdout = (
         "python -m train: 2 CPU devices (X)\n\nMedian [interquartile range] ...\n"
@@ -60,9 +65,9 @@ def test_printed_table_is_found_in_the_demo_output():
 @pytest.mark.slow
 def test_readme_shows_what_the_demo_prints(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "demo"), "--no-progress"]) == 0
-    stdout = capsys.readouterr().out
-    assert describe_devices() in stdout  # the demo says what it ran on
-    block = readme_block(printed_table(stdout), describe_devices())
+    stdout, devices = capsys.readouterr().out, describe_devices()
+    assert devices in stdout  # the demo says what it ran on
+    block = readme_block(printed_table(stdout), devices)
     text = README.read_text()
     assert text.count(START) == 1 and text.count(END) == 1, f"README.md needs one {START} ... {END} block"
     head, rest = text.split(START)
@@ -71,14 +76,14 @@ def test_readme_shows_what_the_demo_prints(tmp_path, capsys):
         README.write_text(head + START + block + END + tail)
         return
     named = re.search(r"Printed by `amjax demo` on (.+?)\. ", shown)
-    if named is None or named.group(1) == describe_devices():  # the machine the README names: number for number
+    if named is None or named.group(1) == devices:  # the machine the README names: number for number
         assert shown == block, (
             "README.md's demo table is not what `amjax demo` printed on the machine it names (above: this run's). "
             "If results changed on purpose, rewrite it: AMJAX_UPDATE_README=1 python -m pytest "
             "tests/test_readme_demo.py\n" + block
         )
     else:
-        assert_same_rows_and_reachable_numbers(printed_table(stdout), shown.split("```")[1].strip("\n"))
+        assert_same_rows_and_reachable_numbers(printed_table(stdout), block_table(shown))
 
 
 def _rows(table: str) -> list[list[str]]:
@@ -101,7 +106,7 @@ def assert_same_rows_and_reachable_numbers(printed: str, readme: str) -> None:
 def test_another_machines_table_passes_the_row_check_and_a_broken_one_does_not():
     """The check a machine other than the README's gets: it passes a real other machine's table (numbers up to 10
     points apart) and fails one with a row missing, a divergence, or cost 0 unsolved."""
-    readme = README.read_text().split(START)[1].split(END)[0].split("```")[1].strip("\n")
+    readme = block_table(README.read_text().split(START)[1].split(END)[0])
     other = OTHER_MACHINE.read_text().strip("\n")
     assert_same_rows_and_reachable_numbers(other, readme)
     lines = other.splitlines()

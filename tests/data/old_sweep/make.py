@@ -79,10 +79,11 @@ def main(root: Path) -> None:
 
 
 def machine() -> dict[str, str]:
-    """This machine as the test compares it (today's `amjax.cores`)."""
-    from amjax.cores import cpu_model, cpu_vector_isa
+    """This machine as the test compares it: today's `amjax.cores.cpu_description`, what a sweep's metadata.json
+    records as "cpu" (these folders' metadata, written by the old code, has no such entry)."""
+    from amjax.cores import cpu_description
 
-    return {"cpu": cpu_model(), "cpu_vector_isa": cpu_vector_isa()}
+    return {"cpu": cpu_description()}
 
 
 if __name__ == "__main__":
