@@ -255,7 +255,7 @@ def run_child(
     for line in reversed(stdout.splitlines()):
         if line.startswith(RESULT_PREFIX):
             result = json.loads(line[len(RESULT_PREFIX) :])
-            return {**case, **result, "wall_s": round(wall, 1), "status": "ok"}
+            return {**case, **result, "wall_s": round(wall, 3), "status": "ok"}
     tail = (stderr or stdout).strip().splitlines()[-1:] or [f"exit {proc.returncode}"]
     return {**case, "status": f"failed: {tail[0][:300]}"}
 
