@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import textwrap
 
 import pytest
@@ -92,3 +95,40 @@ def test_run_cases_records_every_case_and_renders_the_table(child, tmp_path, cap
     assert path == out and [r["settings"] for r in harness.read_runs(out)] == [{"n": 2}]
     assert out.with_suffix(".md").read_text().splitlines()[2:] == ["| 1 | ok |", "| 2 | failed |"]
     assert "| 2 | failed |" in capsys.readouterr().out
+
+
+def test_the_suite_profile_counts_each_tests_programs(tmp_path):
+    """`benchmarks/suite_compile.py` as a pytest plugin: each test's programs compiled (an empty compile cache),
+    summed per file; a test that compiles nothing has none."""
+    from benchmarks import suite_compile
+
+    (tmp_path / "test_two.py").write_text(
+        textwrap.dedent(
+            """
+            import jax, jax.numpy as jnp
+
+            def test_compiles_two():
+                jax.jit(lambda x: x * 2)(jnp.ones(3)).block_until_ready()
+                jax.jit(lambda x: jnp.sin(x).sum())(jnp.ones(5)).block_until_ready()
+
+            def test_compiles_none():
+                assert 1 + 1 == 2
+            """
+        )
+    )
+    records = tmp_path / "records"
+    records.mkdir()
+    env = {
+        **os.environ,
+        suite_compile.RECORDS_ENV: str(records),
+        "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "cache"),
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(harness.ROOT), os.environ.get("PYTHONPATH")])),
+    }
+    command = [sys.executable, "-m", "pytest", "-q", "-p", "benchmarks.suite_compile", "test_two.py"]
+    assert subprocess.run(command, cwd=tmp_path, env=env, capture_output=True).returncode == 0
+    tests = {r["test"]: r for r in suite_compile.read_records(records)}
+    assert tests["test_two.py::test_compiles_two"]["programs"] >= 2
+    assert tests["test_two.py::test_compiles_two"]["compile_s"] > 0
+    assert tests["test_two.py::test_compiles_none"].get("programs", 0) == 0
+    (row,) = [r for r in suite_compile.by_file(list(tests.values())) if r["file"] == "test_two.py"]
+    assert row["tests"] == 2 and row["programs"] == tests["test_two.py::test_compiles_two"]["programs"]
