@@ -56,8 +56,9 @@ _VECTOR_ISAS = (("avx512f", "AVX-512"), ("avx2", "AVX2"), ("avx", "AVX"))
 
 def cpu_vector_isa() -> str:
     """The widest x86 vector extension the CPU has ("AVX-512", "AVX2", "AVX"; "" where /proc/cpuinfo does not say).
-    XLA compiles for the host's own extensions, so one model name can round differently: two 2-core "AMD EPYC"
-    machines, one with AVX-512, trained the README's demo to different tables (2026-11-29)."""
+    One model name can round differently: two 2-core "AMD EPYC" machines, one with AVX-512, trained the README's demo
+    to different tables (2026-11-29). Not through XLA's own code (capped at AVX2 the AVX-512 machine prints the same
+    table); the kernel libraries XLA calls pick their code on the running CPU (docs/results/benchmarks.md)."""
     flags = (_cpuinfo("flags") or "").split()
     return next((name for flag, name in _VECTOR_ISAS if flag in flags), "")
 

@@ -84,7 +84,7 @@ def machine() -> dict[str, Any]:
     return {
         "host": platform.node(),
         "cpu": cpu_model(),
-        "cpu_vector_isa": cpu_vector_isa(),  # XLA compiles for it: rounding differs between extensions
+        "cpu_vector_isa": cpu_vector_isa(),  # rounding differed between two "AMD EPYC" with and without AVX-512
         "cpus": os.cpu_count(),
         "affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "memory_gib": memory_gib(),
