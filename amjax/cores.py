@@ -23,6 +23,7 @@ import platform
 import re
 import warnings
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -67,6 +68,21 @@ def cpu_description() -> str:
     """The CPU's model and widest vector extension, e.g. "AMD EPYC, AVX-512": the machine a result is bit for bit
     reproducible on (with the same device count)."""
     return ", ".join(filter(None, (cpu_model(), cpu_vector_isa())))
+
+
+def memory_maps() -> tuple[int, int] | None:
+    """This process's memory mappings and the kernel's limit on them (``vm.max_map_count``, 65,530 by default), or
+    None where the OS does not say (not Linux).
+
+    Every loaded XLA CPU executable keeps a few mappings per kernel (a small training program 3,000-5,000, a
+    LunarLander-v3 batch's far more), and past the limit LLVM cannot load the next program ("LLVM compilation error:
+    Cannot allocate memory") and the process dies. The sweep runner compiles ahead only while under half of it."""
+    try:
+        limit = int(Path("/proc/sys/vm/max_map_count").read_text())
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps), limit
+    except (OSError, ValueError):
+        return None
 
 
 # Loops that access less than this many bytes per iteration (HloCostAnalysis) become one kernel each.

@@ -19,6 +19,7 @@ import jax
 import numpy as np
 import pytest
 
+from amjax.cores import memory_maps
 from amjax.files import write_compile_cache_whole
 
 # At least two CPU devices, so that the sweep runner's sharded path (`amjax.sweep.devices`) is what the tests run
@@ -43,23 +44,18 @@ jax.config.update(
 # was killed or is still writing. The test processes do it from the start.
 write_compile_cache_whole()
 
+
 # Every loaded XLA CPU executable keeps a few memory mappings per kernel (a training program: 3,000-5,000), and JAX
 # keeps every program a process compiled. An xdist worker that runs half the suite passed Linux's per-process limit
 # (vm.max_map_count, 65,530 by default): LLVM's loader then failed ("Cannot allocate memory") and the worker died
 # (SIGSEGV / SIGABRT) loading the next program. Past half the limit, a test's programs are dropped after it ends.
-_MAPS = Path("/proc/self/maps")
-_MAX_MAPS = Path("/proc/sys/vm/max_map_count")
-_RELEASE_ABOVE = int(_MAX_MAPS.read_text()) // 2 if _MAPS.exists() and _MAX_MAPS.exists() else None  # Linux only
-
-
 @pytest.fixture(autouse=True)
 def _release_programs_near_the_map_limit():
     yield
-    if _RELEASE_ABOVE is not None:
-        with _MAPS.open() as maps:
-            if sum(1 for _ in maps) > _RELEASE_ABOVE:
-                jax.clear_caches()
-                gc.collect()
+    maps = memory_maps()  # None where the OS does not say (not Linux)
+    if maps is not None and maps[0] > maps[1] // 2:
+        jax.clear_caches()
+        gc.collect()
 
 
 # Test tiers. `python -m pytest -q` (the README's command) runs the default tier: every test not marked slow. A test is

@@ -26,6 +26,7 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from amjax import strategy
+from amjax.cores import memory_maps
 from amjax.sweep import storage
 from amjax.sweep.batch_run import TRAIN, batch_state, train_batch
 from amjax.sweep.batches import Batch, BatchPrograms, compile_batch, plan_batches
@@ -66,18 +67,28 @@ class Executor(Protocol):
 
 
 class CompileQueue:
-    """Compiles batches' programs ahead of time, one after another in the order they were queued, on one
-    background daemon thread (an interrupted process does not wait for it) while batches train.
+    """Compiles batches' programs ahead of time, in the order they were queued, on one background daemon thread (an
+    interrupted process does not wait for it) while batches train.
 
     `LocalExecutor` queues each of its batches in training order and takes each one's programs when it reaches it.
     A caller running sweeps one after another (`amjax replicate`) gives their executors one queue and queues the
     next sweep's batches (`queue_sweep`) when one starts, so that they compile while this one trains.
+
+    At most `ahead` batches wait compiled and not yet taken, and none is compiled ahead while this process uses
+    over half the kernel's memory mappings (`amjax.cores.memory_maps`): every compiled program stays loaded until
+    taken and trained, and a LunarLander-v3 sweep of 12 batches compiled all ahead passed Linux's limit and died
+    (2026-11-29). A batch taken before its turn is compiled next.
     """
 
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
+    def __init__(self, ahead: int = 2) -> None:
+        if ahead < 0:
+            raise ValueError(f"ahead: got {ahead}; allowed values: integers >= 0")
+        self.ahead = ahead
+        self._lock = threading.Condition()
         self._jobs: collections.deque = collections.deque()
         self._futures: dict[tuple, Future] = {}
+        self._waiting: set[Future] = set()  # compiled (or compiling) ahead, not taken yet
+        self._wanted: set[Future] = set()  # a take waits for them
         self._worker: threading.Thread | None = None
 
     def submit(self, batch: Batch, target_chunks: int, devices: tuple[jax.Device, ...]) -> None:
@@ -91,13 +102,23 @@ class CompileQueue:
             if self._worker is None:
                 self._worker = threading.Thread(target=self._work, name="amjax-compile-ahead", daemon=True)
                 self._worker.start()
+            self._lock.notify_all()
 
     def take(self, batch: Batch, target_chunks: int, devices: tuple[jax.Device, ...]) -> BatchPrograms:
-        """`batch`'s programs once compiled (queued now if they were not); a failed compile raises its error."""
+        """`batch`'s programs once compiled (next, whatever is ahead of it, if its compile has not started); a failed
+        compile raises its error."""
         self.submit(batch, target_chunks, devices)
         with self._lock:
             future = self._futures.pop((batch.name, target_chunks, devices, strategy.current()))
-        return future.result()
+            self._wanted.add(future)
+            self._lock.notify_all()
+        try:
+            return future.result()
+        finally:
+            with self._lock:
+                self._wanted.discard(future)
+                self._waiting.discard(future)
+                self._lock.notify_all()
 
     def queue_sweep(
         self,
@@ -122,20 +143,39 @@ class CompileQueue:
                 self.submit(batch, target_chunks, devices)
 
     def cancel(self) -> None:
-        """Drop the compiles not started yet (the one under way finishes on its own)."""
+        """Drop the compiles not started yet and the programs not taken (the compile under way finishes on its
+        own)."""
         with self._lock:
             for future, *_ in self._jobs:
                 future.cancel()
             self._jobs.clear()
             self._futures.clear()
+            self._waiting.clear()
+            self._wanted.clear()
+            self._lock.notify_all()
+
+    def _next_job(self) -> tuple | None:
+        """The job to compile now: one a `take` waits for, else the first in line if it may be compiled ahead."""
+        wanted = next((job for job in self._jobs if job[0] in self._wanted), None)
+        if wanted is not None:
+            self._jobs.remove(wanted)
+            return wanted
+        maps = memory_maps()
+        if self._jobs and len(self._waiting) < self.ahead and (maps is None or maps[0] < maps[1] // 2):
+            self._waiting.add(self._jobs[0][0])  # before its result is set: its take always finds it here
+            return self._jobs.popleft()
+        return None
 
     def _work(self) -> None:
         while True:
             with self._lock:
-                if not self._jobs:
+                job = None
+                while self._jobs and (job := self._next_job()) is None:
+                    self._lock.wait(timeout=5.0)  # a take, a cancel or freed mappings (checked again)
+                if job is None:
                     self._worker = None
                     return
-                future, *args = self._jobs.popleft()
+            future, *args = job
             if future.set_running_or_notify_cancel():
                 try:
                     future.set_result(compile_batch(*args))
