@@ -76,13 +76,20 @@ def memory_maps() -> tuple[int, int] | None:
 
     Every loaded XLA CPU executable keeps a few mappings per kernel (a small training program 3,000-5,000, a
     LunarLander-v3 batch's far more), and past the limit LLVM cannot load the next program ("LLVM compilation error:
-    Cannot allocate memory") and the process dies. The sweep runner compiles ahead only while under half of it."""
+    Cannot allocate memory") and the process dies."""
     try:
         limit = int(Path("/proc/sys/vm/max_map_count").read_text())
         with open("/proc/self/maps", "rb") as maps:
             return sum(1 for _ in maps), limit
     except (OSError, ValueError):
         return None
+
+
+def maps_past_half() -> bool:
+    """Whether this process holds over half the kernel's limit on memory mappings (`memory_maps`; False where the
+    OS does not say): past it, the sweep runner stops compiling ahead and drops the programs of finished batches."""
+    maps = memory_maps()
+    return maps is not None and maps[0] > maps[1] // 2
 
 
 # Loops that access less than this many bytes per iteration (HloCostAnalysis) become one kernel each.

@@ -19,7 +19,7 @@ import jax
 import numpy as np
 import pytest
 
-from amjax.cores import memory_maps
+from amjax.cores import maps_past_half
 from amjax.files import write_compile_cache_whole
 
 # At least two CPU devices, so that the sweep runner's sharded path (`amjax.sweep.devices`) is what the tests run
@@ -52,8 +52,7 @@ write_compile_cache_whole()
 @pytest.fixture(autouse=True)
 def _release_programs_near_the_map_limit():
     yield
-    maps = memory_maps()  # None where the OS does not say (not Linux)
-    if maps is not None and maps[0] > maps[1] // 2:
+    if maps_past_half():
         jax.clear_caches()
         gc.collect()
 

@@ -4,6 +4,7 @@ that initialise, train and re-score one batch (the pieces the runner drives and 
 from __future__ import annotations
 
 import functools
+import gc
 import math
 import threading
 from collections.abc import Callable, Sequence
@@ -16,6 +17,7 @@ import numpy as np
 
 from amjax import strategy
 from amjax.agents import ALGORITHMS, Algorithm, init_run, rescore, run_evals, stack_configs
+from amjax.cores import maps_past_half
 from amjax.sweep.devices import config_sharding, sharded_jit, sweep_devices
 from amjax.sweep.grid import RunConfig, group_runs
 
@@ -121,6 +123,22 @@ def _rescore_program(algo: Algorithm, devices: tuple[jax.Device, ...], strategy_
     return sharded_jit(jax.vmap(rescore_one), list(devices), in_shardings=sharding, out_shardings=sharding)
 
 
+def release_programs() -> bool:
+    """Drop every program compiled through `compiled_programs` and `rescore_program` if this process holds over half
+    of the kernel's limit on memory mappings (`amjax.cores.maps_past_half`); returns whether it did.
+
+    Their jitted functions are cached (so a batch of the same shapes and static config reuses its programs), and JAX
+    keeps each executable they compiled loaded for as long as the function lives: a sweep's every finished batch
+    (a LunarLander-v3 batch's programs take thousands of mappings) until the process passes the limit and dies.
+    Called after each batch; programs already compiled ahead for later batches are kept (they are held apart)."""
+    if not maps_past_half():
+        return False
+    _compiled_programs.cache_clear()
+    _rescore_program.cache_clear()
+    gc.collect()  # the executables are freed with the functions' caches, some through reference cycles
+    return True
+
+
 @dataclass(frozen=True)
 class BatchPrograms:
     """One batch's stacked configurations and keys (`Batch.stacked`) and its programs compiled for them:
@@ -181,5 +199,6 @@ __all__ = [
     "compile_batch",
     "compiled_programs",
     "plan_batches",
+    "release_programs",
     "rescore_program",
 ]

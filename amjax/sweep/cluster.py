@@ -205,7 +205,7 @@ def train_part(
     from tqdm.auto import tqdm
 
     from amjax.sweep.batch_run import train_batch
-    from amjax.sweep.batches import plan_batches
+    from amjax.sweep.batches import plan_batches, release_programs
     from amjax.sweep.devices import sweep_devices
     from amjax.sweep.grid import SweepSpec, expand
 
@@ -244,6 +244,7 @@ def train_part(
                 on_chunk=None,
                 **options,
             )
+        release_programs()  # a worker trains its group's batches one after another
     return {**info, "seconds": round(time.monotonic() - start, 1)}
 
 

@@ -26,10 +26,10 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from amjax import strategy
-from amjax.cores import memory_maps
+from amjax.cores import maps_past_half
 from amjax.sweep import storage
 from amjax.sweep.batch_run import TRAIN, batch_state, train_batch
-from amjax.sweep.batches import Batch, BatchPrograms, compile_batch, plan_batches
+from amjax.sweep.batches import Batch, BatchPrograms, compile_batch, plan_batches, release_programs
 from amjax.sweep.devices import sweep_devices
 from amjax.sweep.grid import SweepSpec, expand
 from amjax.sweep.loggers import RunLogger
@@ -75,7 +75,7 @@ class CompileQueue:
     next sweep's batches (`queue_sweep`) when one starts, so that they compile while this one trains.
 
     At most `ahead` batches wait compiled and not yet taken, and none is compiled ahead while this process uses
-    over half the kernel's memory mappings (`amjax.cores.memory_maps`): every compiled program stays loaded until
+    over half the kernel's memory mappings (`amjax.cores.maps_past_half`): every compiled program stays loaded until
     taken and trained, and a LunarLander-v3 sweep of 12 batches compiled all ahead passed Linux's limit and died
     (2026-11-29). A batch taken before its turn is compiled next.
     """
@@ -160,8 +160,7 @@ class CompileQueue:
         if wanted is not None:
             self._jobs.remove(wanted)
             return wanted
-        maps = memory_maps()
-        if self._jobs and len(self._waiting) < self.ahead and (maps is None or maps[0] < maps[1] // 2):
+        if self._jobs and len(self._waiting) < self.ahead and not maps_past_half():
             self._waiting.add(self._jobs[0][0])  # before its result is set: its take always finds it here
             return self._jobs.popleft()
         return None
@@ -244,6 +243,7 @@ class LocalExecutor:
                     rescored=rescored,
                     programs=compiler.take(batch, self.target_chunks, self.devices),
                 )
+                release_programs()  # near the memory-map limit: the finished batch's programs unloaded
         finally:
             if self.compile_queue is None:
                 compiler.cancel()
