@@ -180,6 +180,7 @@ class CompileQueue:
                     future.set_result(compile_batch(*args))
                 except BaseException as error:  # re-raised by take() in the sweep's thread
                     future.set_exception(error)
+            del job, future, args  # the programs are the taker's: not kept loaded while this thread waits
 
 
 class LocalExecutor:
