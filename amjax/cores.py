@@ -74,9 +74,9 @@ def memory_maps() -> tuple[int, int] | None:
     """This process's memory mappings and the kernel's limit on them (``vm.max_map_count``, 65,530 by default), or
     None where the OS does not say (not Linux).
 
-    Every loaded XLA CPU executable keeps a few mappings per kernel (a small training program 3,000-5,000, a
-    LunarLander-v3 batch's far more), and past the limit LLVM cannot load the next program ("LLVM compilation error:
-    Cannot allocate memory") and the process dies."""
+    Every loaded XLA CPU executable keeps a few mappings per kernel (a tiny PPO training program about 900, the
+    programs of a LunarLander-v3 sweep batch about 10,000), and past the limit LLVM cannot load the next program
+    ("LLVM compilation error: Cannot allocate memory") and the process dies."""
     try:
         limit = int(Path("/proc/sys/vm/max_map_count").read_text())
         with open("/proc/self/maps", "rb") as maps:

@@ -128,9 +128,9 @@ def release_programs() -> bool:
     of the kernel's limit on memory mappings (`amjax.cores.maps_past_half`); returns whether it did.
 
     Their jitted functions are cached (so a batch of the same shapes and static config reuses its programs), and JAX
-    keeps each executable they compiled loaded for as long as the function lives: a sweep's every finished batch
-    (a LunarLander-v3 batch's programs take thousands of mappings) until the process passes the limit and dies.
-    Called after each batch; programs already compiled ahead for later batches are kept (they are held apart)."""
+    keeps each executable they compiled loaded for as long as the function lives. So every finished batch's programs
+    stay loaded (a LunarLander-v3 batch's take about 10,000 mappings), and a long sweep would pass the limit and
+    die. Called after each batch; programs compiled ahead for later batches are kept (their queue holds them)."""
     if not maps_past_half():
         return False
     _compiled_programs.cache_clear()
