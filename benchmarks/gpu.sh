@@ -13,9 +13,14 @@
 #   ppo, dqn           the same sweeps, each implementation in a fresh process (python -m benchmarks.throughput, the
 #                      cases of issue 58's table; ~37 s a case, ~6 minutes both);
 #   demo               `python -m train demo`'s wall time (~1 minute);
-#   replicate          benchmarks/replicate_time.py's projection of `amjax replicate` for LunarLander-v3's PPO and
-#                      Dueling DQN (compiles dominate on a GPU; it did not finish in 170 s on an H200), each env x agent
-#                      with its own time limit; records in replicate.jsonl.
+#   dqn-variants       Dueling DQN at 4,096 x 2,500 (profiled) and 1,024 x 51,200 (timed), amjax with each of
+#                      GPU_VARIANTS (default target-cond; benchmarks/gpu_profile.py's VARIANTS) beside it and the
+#                      reference, then 1,024 x 5,120 profiled (the learning updates' kernels); ~5 minutes; records in
+#                      dqn_variants.jsonl;
+#   replicate          benchmarks/replicate_time.py's projection of `amjax replicate` (GPU_REPLICATE, default
+#                      LunarLander-v3's PPO and Dueling DQN; compiles dominate on a GPU: it did not finish in 170 s
+#                      on an H200), each env x agent (GPU_REPLICATE_CASES of them) with its share of the part's
+#                      limit (GPU_REPLICATE_S seconds, default 240); records in replicate.jsonl.
 # Each part has a time limit, so a slow part costs its own rows, not the rest (the limits allow for the harness's
 # extra process starts: each script's device query, and lunar_lander_batch.py's process per size); gpu.md says
 # which part stopped early. The Python parts record through benchmarks/harness.py: their JSON lines (ppo.jsonl and
@@ -27,6 +32,8 @@
 #   bash benchmarks/gpu.sh [OUT_DIR]        # default: benchmarks/results/gpu_<date>
 #   GPU_QUICK=1 bash benchmarks/gpu.sh /tmp/gpu-smoke   # tiny sizes: checks the script on a CPU in ~5 minutes
 #   GPU_PARTS="ppo dqn demo" bash benchmarks/gpu.sh     # the parts named only
+#   GPU_PARTS="dqn-variants replicate" GPU_REPLICATE="--env LunarLander-v3 --agent dqn" GPU_REPLICATE_CASES=1 \
+#       GPU_REPLICATE_S=250 bash benchmarks/gpu.sh     # the next session's DQN experiment and one projection
 #   GPU_LIMIT_SCALE=3 GPU_QUICK=1 bash benchmarks/gpu.sh /tmp/gpu-smoke   # every time limit x3 (a busy CPU)
 #
 # On a machine that cannot reach the package index (jax, flax, optax, chex, pandas and pyarrow there, no gymnax),
@@ -52,14 +59,16 @@ export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 if [ -n "${GPU_QUICK:-}" ]; then
     sizes=4,8; ppo_steps=4:5120,8:5120; dqn_steps=4:2500,8:2500; big=4; small=8; long=5120
     lander="--envs 256 512 --steps 5 --burn-in 5"; lander_cpu="--envs 256 --steps 5 --burn-in 5"
-    replicate="--env CartPole-v0 --agent ppo --seeds 2 --probe-steps 1024"; replicate_cases=1
+    replicate="--env CartPole-v0 --agent ppo --seeds 2 --probe-steps 1024"; replicate_cases=1; dqn_steps_short=2560
 else
     sizes=1024,4096; ppo_steps=1024:51200,4096:5120; dqn_steps=1024:51200,4096:2500; big=1024; small=4096; long=51200
     lander="--envs 65536 262144 1048576 --steps 25 --burn-in 100"; lander_cpu="--envs 65536 --steps 10 --burn-in 10"
-    replicate="--env LunarLander-v3 --agent ppo dqn"; replicate_cases=2
+    replicate="--env LunarLander-v3 --agent ppo dqn"; replicate_cases=2; dqn_steps_short=5120
 fi
+replicate=${GPU_REPLICATE:-$replicate}
+replicate_cases=${GPU_REPLICATE_CASES:-$replicate_cases}
 scale=${GPU_LIMIT_SCALE:-1}
-replicate_limit=$((240 * scale))
+replicate_limit=$((${GPU_REPLICATE_S:-240} * scale))
 
 device=$("$python" -c "import jax; d = jax.devices()[0]; print(f'{d.device_kind} ({jax.default_backend()}), jax {jax.__version__}')")
 {
@@ -94,6 +103,15 @@ profile() {  # the four cases, one process each; the long runs timed only
 export -f profile
 export out python big small long
 part profile 360 bash -c profile
+dqn_variants() {  # Dueling DQN, amjax and its variants beside the reference: both sizes, then a short profile at 1,024
+    local p=("$python" benchmarks/gpu_profile.py --agent dqn --variants "${GPU_VARIANTS:-target-cond}"
+        --out "$out/dqn_variants.jsonl")
+    "${p[@]}" --configs "$small" --steps 2500 && "${p[@]}" --configs "$big" --steps "$long" --no-profile --rounds 1 &&
+        "${p[@]}" --configs "$big" --steps "$dqn_steps_short" --rounds 1
+}
+export -f dqn_variants
+export dqn_steps_short
+part dqn-variants 330 bash -c dqn_variants
 throughput=("$python" -m benchmarks.throughput --impls amjax,reference --no-sb3 --overhead "" --sizes "$sizes")
 part ppo 170 "${throughput[@]}" --agents ppo --steps $ppo_steps --out "$out/ppo.jsonl" --json "$out/ppo.json"
 part dqn 180 "${throughput[@]}" --agents dqn --steps $dqn_steps --out "$out/dqn.jsonl" --json "$out/dqn.json"
@@ -105,7 +123,7 @@ start=$SECONDS
 part demo 90 "$python" -m train demo --out "$demo_dir/demo" --no-progress
 demo_s=$((SECONDS - start))
 # Each env x agent its share of the part's limit, so that a slow one is recorded as timed out and the next still runs.
-part replicate 240 "$python" benchmarks/replicate_time.py $replicate --out "$out/replicate.jsonl" \
+part replicate "${GPU_REPLICATE_S:-240}" "$python" benchmarks/replicate_time.py $replicate --out "$out/replicate.jsonl" \
     --timeout $(((replicate_limit - 20) / replicate_cases))
 
 stopped() {  # stopped PART...: a line for each PART that did not finish (its time limit: exit 124)
@@ -130,6 +148,8 @@ rendered() {  # rendered HEADING FILE.md PART...: under HEADING, FILE (its headi
 {
     rendered "Sweeps: amjax against the plain reference, in one process (benchmarks/gpu_profile.py)" \
         "$out/profile.md" profile
+    rendered "Dueling DQN variants (benchmarks/gpu_profile.py --variants ${GPU_VARIANTS:-target-cond})" \
+        "$out/dqn_variants.md" dqn-variants
     for agent in ppo dqn; do
         [ -e "$out/$agent.log" ] || continue  # a part not run
         echo

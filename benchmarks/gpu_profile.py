@@ -3,6 +3,7 @@ process, timed in alternation, then each profiled for one run; device time is su
 
     python benchmarks/gpu_profile.py --agent ppo --configs 1024 --steps 51200  # benchmarks/results/, .jsonl and .md
     python benchmarks/gpu_profile.py --agent dqn --configs 4 --steps 2500 --rounds 1 --out /tmp/p.jsonl  # a smoke run
+    python benchmarks/gpu_profile.py --agent dqn --configs 4096 --steps 2500 --variants target-cond  # an experiment
 
 Both implementations are compiled and timed in this one process on purpose (the same device state, rounds
 alternating, so that a slower or busier device moves both), so this script runs no child processes: it uses
@@ -11,11 +12,15 @@ benchmarks/results/gpu_profile_<date>_<machine>.jsonl) a "run" line naming the m
 implementation (the timed rounds, env-steps/s, kernel count, device busy time, and the ops, source lines and
 kernels that take the most device time), and renders the markdown beside it. On a CPU it runs too (the figures are
 then the CPU's thunks), which is how the script is checked before a GPU session.
+
+`--variants` adds amjax's programs compiled with a change patched in (`VARIANTS`), timed and profiled beside the
+others as "amjax+NAME": an experiment on the device before the library changes.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gzip
 import json
 import re
@@ -24,6 +29,7 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -137,14 +143,47 @@ def summarise(events: list[dict[str, Any]], sources: dict[str, str], top: int) -
     }
 
 
-def build(case: dict[str, Any]) -> dict[str, Any]:
-    """impl -> (run, optimised HLO texts) for amjax and the reference, compiled as the throughput benchmark does."""
-    programs = runners._compile_amjax({**case, "impl": "amjax"})
+VARIANTS = {
+    "target-cond": "the Q-learners' target update as `uniform_cond` (a conditional) under every strategy, not "
+    "`cheap_cond`'s select under the GPU one",
+}
+
+
+@contextlib.contextmanager
+def variant(name: str | None) -> Iterator[None]:
+    """`VARIANTS[name]` patched in while amjax's programs are traced (nothing for None)."""
+    from amjax.agents import q_learning
+    from amjax.batching import uniform_cond
+
+    patches = {"target-cond": [(q_learning, "cheap_cond", uniform_cond)]}.get(name, []) if name else []
+    saved = [(module, attr, getattr(module, attr)) for module, attr, _ in patches]
+    for module, attr, value in patches:
+        setattr(module, attr, value)
+    try:
+        yield
+    finally:
+        for module, attr, value in saved:
+            setattr(module, attr, value)
+
+
+def build(case: dict[str, Any], variants: Sequence[str] = ()) -> dict[str, Any]:
+    """impl -> (run, optimised HLO texts) for amjax (and each of `variants`) and the reference, compiled as the
+    throughput benchmark does."""
+    from amjax.sweep.batches import _compiled_programs
+
+    built = {}
+    for name in [None, *variants]:
+        with variant(name):
+            programs = runners._compile_amjax({**case, "impl": "amjax"})
+        _compiled_programs.cache_clear()  # the next variant traces afresh
+        jax.clear_caches()
+        built["amjax" if name is None else f"amjax+{name}"] = (
+            runners.sweep_run(programs),
+            [programs.chunk.as_text(), programs.init.as_text()],
+        )
     reference, run_reference, _ = runners.compile_reference(case)
-    return {
-        "amjax": (runners.sweep_run(programs), [programs.chunk.as_text(), programs.init.as_text()]),
-        "reference": (run_reference, [reference.as_text()]),
-    }
+    built["reference"] = (run_reference, [reference.as_text()])
+    return built
 
 
 def _top_table(rows: list[dict[str, Any]], title: str) -> str:
@@ -223,7 +262,16 @@ def main(argv: list[str] | None = None) -> int:
         "markdown is written beside it)",
     )
     parser.add_argument("--no-profile", dest="profile", action="store_false", help="time only, no trace")
+    parser.add_argument(
+        "--variants",
+        type=lambda text: [v for v in text.split(",") if v],
+        default=[],
+        help="comma-separated amjax variants to time beside it: " + "; ".join(f"{k}: {v}" for k, v in VARIANTS.items()),
+    )
     args = parser.parse_args(argv)
+    unknown = sorted(set(args.variants) - set(VARIANTS))
+    if unknown:
+        parser.error(f"--variants: unknown {', '.join(unknown)}; choose from {', '.join(VARIANTS)}")
 
     case = {
         "agent": args.agent,
@@ -246,9 +294,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{device.device_kind} ({jax.default_backend()}), {args.agent} {args.configs} x {case['steps']}", flush=True)
 
     start = time.perf_counter()
-    built = build(case)
+    built = build(case, args.variants)
     print(f"compiled both in {time.perf_counter() - start:.1f} s", flush=True)
     walls = interleaved({impl: run for impl, (run, _) in built.items()}, args.rounds)
+    for impl, rounds in walls.items():  # printed before profiling, which may outlast a time limit
+        steps_per_s = case["configs"] * case["steps"] / min(rounds)
+        print(f"{impl}: best {min(rounds):.3f} s, {steps_per_s / 1e6:.2f} M env-steps/s", flush=True)
     env_steps = case["configs"] * case["steps"]
     for impl, (run, texts) in built.items():
         record: dict[str, Any] = {

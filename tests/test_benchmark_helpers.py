@@ -96,3 +96,33 @@ def test_gpu_profile_names_the_source_line_behind_each_kernel(tmp_path):
     assert summary["kernels"] >= 2 and summary["busy_ms"] > 0
     named = [row["name"] for row in summary["top_sources"]]
     assert any(f"test_benchmark_helpers.py:{line} " in name for name in named), named
+
+
+def test_gpu_profile_variant_changes_the_program_it_names():
+    """benchmarks/gpu_profile.py --variants target-cond: under the GPU strategy the Q-learners' target update
+    becomes a conditional (one more than the learning step's), and the patch is gone after the block."""
+    import jax
+
+    from amjax import strategy
+    from amjax.agents import DQN, DQNConfig, q_learning, stack_configs
+    from benchmarks import gpu_profile
+
+    configs = [DQNConfig(cost=c, num_envs=2, buffer_size=64, learning_starts=8).validate() for c in (0.1, 0.2)]
+    stacked = stack_configs(configs)
+
+    def conditionals() -> int:
+        def update(config, key):
+            setup = DQN.setup(configs[0])  # the static fields; the traced ones come from `config`
+            return DQN.update(config, setup, DQN.init(config, setup, key))[0].target_params
+
+        keys = jax.random.split(jax.random.PRNGKey(0), 2)
+        text = jax.jit(jax.vmap(update)).lower(stacked, keys).as_text()
+        return text.count("stablehlo.case") + text.count("stablehlo.if")
+
+    cheap_cond = q_learning.cheap_cond
+    with strategy.use("gpu"):
+        base = conditionals()
+        with gpu_profile.variant("target-cond"):
+            patched = conditionals()
+    assert patched == base + 1, (base, patched)
+    assert q_learning.cheap_cond is cheap_cond
