@@ -36,6 +36,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]  # the repository: children run there, with it importable
 RESULTS = ROOT / "benchmarks" / "results"
 RESULT_PREFIX = "RESULT "
+PROGRESS_PREFIX = "PROGRESS "  # a child's measurements so far, kept if it runs out of time
 
 
 # -- the machine ------------------------------------------------------------------------------------
@@ -233,7 +234,8 @@ def run_child(
 ) -> dict[str, Any]:
     """Run `python SCRIPT --child CASE_JSON` in the repository; the child's `RESULT` record with `peak_rss_mib` (the
     child's own, from the kernel), `wall_s` and `status` "ok" added, or the case with a `status` saying why there
-    are no measurements (a timeout, or the child's last line of errors)."""
+    are no measurements (a timeout, or the child's last line of errors) and, after a timeout, the last record the
+    child printed with `child_progress` as `partial`."""
     pythonpath = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
     command = [sys.executable, str(script), "--child", json.dumps(case)]
     start = time.perf_counter()
@@ -249,8 +251,12 @@ def run_child(
         stdout, stderr = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
         proc.kill()
-        proc.communicate()
-        return {**case, "status": f"timeout after {timeout:.0f} s"}
+        stdout, _ = proc.communicate()
+        stopped = {**case, "status": f"timeout after {timeout:.0f} s"}
+        for line in reversed((stdout or "").splitlines()):
+            if line.startswith(PROGRESS_PREFIX):
+                return {**stopped, "partial": json.loads(line[len(PROGRESS_PREFIX) :])}
+        return stopped
     wall = time.perf_counter() - start
     for line in reversed(stdout.splitlines()):
         if line.startswith(RESULT_PREFIX):
@@ -334,6 +340,12 @@ def time_training_batch(algo: Any, items: Sequence[Any], keys: Any) -> dict[str,
         "env_steps_per_s": round(len(items) * total / run_s),
         "final_eval_return_median": round(float(jnp.median(returns[:, -1])), 1),
     }
+
+
+def child_progress(measurements: dict[str, Any]) -> None:
+    """In a child: print the measurements so far, which `run_child` keeps (as `partial`) if the child runs out of
+    time before `child_result`."""
+    print(PROGRESS_PREFIX + json.dumps(measurements, default=str), flush=True)
 
 
 def child_result(measurements: dict[str, Any]) -> None:

@@ -31,6 +31,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -61,8 +62,11 @@ def probe_inputs(batch: Batch, probe_steps: int) -> tuple[Any, jax.Array, int]:
     return stack_configs(configs + [configs[-1]] * (batch.size - len(configs))), keys, period
 
 
-def probe_batch(batch: Batch, budget: int, probe_steps: int, devices: list) -> dict[str, float]:
-    """Compile time and steady env-steps/s of one batch, and its projected time at `budget` steps per config."""
+def probe_batch(
+    batch: Batch, budget: int, probe_steps: int, devices: list, report: Callable[[dict], None] = lambda _: None
+) -> dict[str, float]:
+    """Compile time and steady env-steps/s of one batch, and its projected time at `budget` steps per config
+    (`report` gets the init's and the chunk's compile times as soon as they are known)."""
     import jax
     import numpy as np
 
@@ -71,11 +75,14 @@ def probe_batch(batch: Batch, budget: int, probe_steps: int, devices: list) -> d
 
     stacked, keys, period = probe_inputs(batch, probe_steps)
     init, chunk = compiled_programs(batch.algo, 1, tuple(devices))
+    start = time.perf_counter()
     states = jax.device_get(init(stacked, keys))
+    init_s = time.perf_counter() - start
     stacked, states = jax.device_put((stacked, states), config_sharding(devices))
     start = time.perf_counter()
     chunk = chunk.lower(stacked, states).compile()
     compile_s = time.perf_counter() - start
+    report({"configs": len(batch.runs), "init_s": init_s, "compile_s": compile_s})
     states, rows = chunk(stacked, states)  # the first period (replay warm-up included)
     jax.block_until_ready(rows)
     start = time.perf_counter()
@@ -97,6 +104,7 @@ def probe_batch(batch: Batch, budget: int, probe_steps: int, devices: list) -> d
     evals = budget // batch.runs[0].config.eval_every
     return {
         "configs": len(batch.runs),
+        "init_s": init_s,
         "compile_s": compile_s,
         "steps_per_s": rate,
         "steps": steps,
@@ -123,10 +131,13 @@ def probe(env: str, agent: str, seeds: int, probe_steps: int, devices: list) -> 
     from train.presets import replicate_specs
 
     spec = replicate_specs((env,), (agent,), seeds)[env]
-    return [
-        probe_batch(batch, spec.total_timesteps, probe_steps, devices)
-        for batch in plan_batches(expand(spec), 1024, len(devices))
-    ]
+    done: list[dict[str, float]] = []
+    for batch in plan_batches(expand(spec), 1024, len(devices)):
+        # Each step reported, so that a case that runs past its time limit still says what it measured.
+        report = lambda current: harness.child_progress({"batches": done, "current": current})  # noqa: E731
+        done.append(probe_batch(batch, spec.total_timesteps, probe_steps, devices, report))
+        harness.child_progress({"batches": done})
+    return done
 
 
 def run_case(env: str, agent: str, seeds: int, probe_steps: int, devices: int | None) -> dict[str, Any]:
@@ -183,9 +194,26 @@ def render(runs: list[dict[str, Any]]) -> str:
             )
             + f"\nprojected total: {total / 3600:.2f} h (training and compilation; reports add about a minute per "
             f"env){' of the env x agent cases that finished' if failed else ''}; peak RSS: the env x agent's "
-            "process.\n" + "".join(f"\n{r['env']} {r['agent']}: {r['status']}\n" for r in failed)
+            "process.\n" + "".join(f"\n{r['env']} {r['agent']}: {r['status']}{_partial(r)}\n" for r in failed)
         )
     return "\n".join(parts)
+
+
+def _partial(case: dict[str, Any]) -> str:
+    """What a case that ran out of time finished: its probed batches, as the table would show them."""
+    partial = case.get("partial", {})
+    text = "".join(
+        f"; its {b['configs']}-configuration batch finished (compile {b['compile_s']:.1f} s, "
+        f"{b['steps_per_s'] / 1e3:.1f} k train steps/s, projected {b['projected_s'] / 60:.1f} m)"
+        for b in partial.get("batches", [])
+    )
+    if "current" in partial:
+        c = partial["current"]
+        text += (
+            f"; its {c['configs']}-configuration batch had compiled (init {c['init_s']:.1f} s with its compile, "
+            f"training chunk {c['compile_s']:.1f} s)"
+        )
+    return text
 
 
 def main(argv: list[str] | None = None) -> int:

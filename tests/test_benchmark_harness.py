@@ -20,6 +20,9 @@ CHILD = textwrap.dedent(
     case = json.loads(sys.argv[sys.argv.index("--child") + 1])
     if case.get("fail"):
         raise RuntimeError("the case broke")
+    if case.get("progress"):
+        harness.child_progress({"done": 1})
+        harness.child_progress({"done": 2})
     if case.get("sleep"):
         time.sleep(case["sleep"])
     block = b"x" * (case.get("mib", 0) * 2**20)  # written, so resident: counted in the child's peak RSS
@@ -49,7 +52,12 @@ def test_a_failing_or_slow_child_gets_a_status_not_numbers(child):
     failed = harness.run_child(child, {"x": 1, "fail": True})
     assert failed["status"].startswith("failed: RuntimeError: the case broke") and "answer" not in failed
     slow = harness.run_child(child, {"x": 1, "sleep": 30}, timeout=3)
-    assert slow["status"] == "timeout after 3 s"
+    assert slow["status"] == "timeout after 3 s" and "partial" not in slow
+    # what a slow child reported before its time ran out is kept (its last report), but is no result
+    partly = harness.run_child(child, {"x": 1, "sleep": 30, "progress": True}, timeout=3)
+    assert partly["status"] == "timeout after 3 s" and partly["partial"] == {"done": 2} and "answer" not in partly
+    done = harness.run_child(child, {"x": 1, "progress": True})
+    assert done["status"] == "ok" and done["answer"] == 2 and "partial" not in done
 
 
 def test_runs_append_to_one_file_per_day_and_machine(tmp_path, monkeypatch):

@@ -126,3 +126,19 @@ def test_gpu_profile_variant_changes_the_program_it_names():
             patched = conditionals()
     assert patched == base + 1, (base, patched)
     assert q_learning.cheap_cond is cheap_cond
+
+
+def test_replicate_time_says_what_a_timed_out_case_measured():
+    """benchmarks/replicate_time.py: a case that ran past its time limit lists the batches it finished and the
+    compile times of the one it was training (the child's last progress record, `harness.run_child`'s `partial`)."""
+    from benchmarks import replicate_time
+
+    batch = {"configs": 40, "compile_s": 61.0, "steps_per_s": 2.5e5, "projected_s": 600.0}
+    case = {
+        "status": "timeout after 235 s",
+        "partial": {"batches": [batch], "current": {"configs": 10, "init_s": 20.5, "compile_s": 55.25}},
+    }
+    text = replicate_time._partial(case)
+    assert "40-configuration batch finished (compile 61.0 s, 250.0 k train steps/s, projected 10.0 m)" in text
+    assert "10-configuration batch had compiled (init 20.5 s with its compile, training chunk 55.2 s)" in text
+    assert replicate_time._partial({"status": "timeout after 235 s"}) == ""
