@@ -18,6 +18,7 @@ import pandas as pd
 
 import amjax
 from amjax.cores import cpu_description
+from amjax.files import use_compile_cache
 
 # The CLI is an application: every core for its sweeps, asked for before gymnax (imported below) starts JAX.
 amjax.use_all_cores()
@@ -343,6 +344,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     for line in describe_presets(spec):
         print(f"{parser.prog}: {line}")
     print(f"{parser.prog}: {describe_devices()}")
+    use_compile_cache(args.out)  # a resumed sweep loads its programs instead of compiling them again
     try:
         result = run_sweep(
             spec,

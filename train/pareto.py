@@ -113,6 +113,7 @@ def run(args: argparse.Namespace, error: Any) -> int:
 
     from amjax.analysis import load_results, to_markdown
     from amjax.analysis.pareto import cost_front, front_medians, front_table, plot_front
+    from amjax.files import use_compile_cache
     from amjax.sweep import run_sweep
 
     try:
@@ -120,6 +121,7 @@ def run(args: argparse.Namespace, error: Any) -> int:
     except (ValueError, TypeError) as exc:
         error(str(exc))  # exits with status 2, before anything is written
     out = Path(args.out)
+    use_compile_cache(out)  # a resumed run loads its programs instead of compiling them again
     run_sweep(conditioned, out / "conditioned", progress=not args.no_progress)
     special = None
     if specialists is not None:

@@ -8,6 +8,7 @@ Layout of an output folder:
   checkpoints/*.msgpack  train states of each compiled batch (for resuming), no pickle
   policies/<config_id>.msgpack  the best policy of each configuration (`amjax.load_policy`)
   finished/<batch>.json  a batch's commit marker: written last, once everything above is on disk for it
+  compile_cache/<machine>/ the compiled programs, for a rerun (`amjax.files.use_compile_cache`; the CLI's)
 
 Crash consistency: every file appears through one durable rename (`amjax.files.commit`), and a batch counts as
 finished only when its marker is there *and* the files it vouches for are (`batch_complete`); a rerun redoes
