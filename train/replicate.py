@@ -17,7 +17,7 @@ from typing import Any
 
 import pandas as pd
 
-from amjax.files import atomic_write, folder_lock, remove_partial_writes, use_compile_cache
+from amjax.files import COMPILE_CACHE, atomic_write, folder_lock, remove_partial_writes, use_compile_cache
 from train.flags import add_cluster_arguments, add_logging_arguments, cluster_from_args, executor_for, make_loggers
 from train.presets import REPLICATE_BUDGETS, replicate_specs
 
@@ -138,6 +138,7 @@ def run(args: argparse.Namespace, error: Any) -> int:
     try:
         with folder_lock(out):
             remove_partial_writes(out, recursive=False)  # each sweep folder cleans its own
+            remove_partial_writes(out / COMPILE_CACHE)
             use_compile_cache(out)  # a resumed replication loads its programs instead of compiling them again
             index = _replicate(specs, out, args, *cluster)
     except (SweepMismatchError, FolderBusyError, SweepTooLargeError, UnreadableFileError, ClusterError) as problem:
