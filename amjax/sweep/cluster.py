@@ -36,7 +36,7 @@ from typing import Any
 
 import pandas as pd
 
-from amjax.files import FolderBusyError, atomic_write, commit, folder_lock, remove_partial_writes
+from amjax.files import FolderBusyError, atomic_write, commit, folder_lock, remove_partial_writes, use_compile_cache
 from amjax.sweep import storage
 from amjax.sweep.devices import sweep_devices
 
@@ -50,7 +50,6 @@ SLURM_JOBS = 64
 LOGS = "cluster_logs"  # the jobs' logs, under `out`
 PARTS = "parts"  # the workers' folders, under `out`
 STALE_S = 900  # a job Slurm reports as PREEMPTED or UNKNOWN this long is cancelled and its batch run again
-COMPILE_CACHE = "compile_cache"  # the workers' shared JAX compilation cache, under `out`
 
 
 class ClusterError(RuntimeError):
@@ -132,23 +131,25 @@ def make_executor(
         f"export {name}=${{{name}:-{shlex.quote(value)}}}"
         if name == "JAX_COMPILATION_CACHE_DIR"
         else f"export {name}={shlex.quote(value)}"
-        for name, value in worker_environment(Path(folder).parent, devices).items()
+        for name, value in worker_environment(devices).items()
     ]
     executor.update_parameters(setup=[*exports, *parameters.pop("setup", ())], **parameters)
     return executor
 
 
-def worker_environment(out: Path, devices: int) -> dict[str, str]:
+def worker_environment(devices: int) -> dict[str, str]:
     """What a worker's Python must find set when it starts (the job imports amjax, whose agents start JAX, before
     the job function runs):
     - JAX_NUM_CPU_DEVICES: as many devices as the driver planned the batches for, so the same per-device shapes
       as the local run's programs (XLA's float rounding can depend on a shard's size);
-    - JAX_COMPILATION_CACHE_DIR: one persistent compilation cache in `out` for every worker, so a program compiles
-      once, not once per batch of its group or retry (a cache the user set is kept)."""
-    return {
-        "JAX_NUM_CPU_DEVICES": str(int(devices)),
-        "JAX_COMPILATION_CACHE_DIR": os.environ.get("JAX_COMPILATION_CACHE_DIR", str(Path(out) / COMPILE_CACHE)),
-    }
+    - JAX_COMPILATION_CACHE_DIR, if the user set one. Otherwise each worker keeps its programs in
+      `out/compile_cache/<its backend and CPU>` (`train_part` calls `use_compile_cache`), shared by every worker of
+      that kind of machine: a program compiles once, not once per batch of its group or retry, and never loads on a
+      CPU of another vector extension."""
+    variables = {"JAX_NUM_CPU_DEVICES": str(int(devices))}
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        variables["JAX_COMPILATION_CACHE_DIR"] = os.environ["JAX_COMPILATION_CACHE_DIR"]
+    return variables
 
 
 @contextlib.contextmanager
@@ -209,6 +210,7 @@ def train_part(
     from amjax.sweep.devices import sweep_devices
     from amjax.sweep.grid import SweepSpec, expand
 
+    use_compile_cache(out)
     spec = SweepSpec.from_json(spec_json)
     runs = expand(spec)
     devices = tuple(sweep_devices())
@@ -361,7 +363,7 @@ def drive(
                 batch = queue.pop(0)
                 attempts[batch.name] = attempts.get(batch.name, 0) + 1
                 try:
-                    with starting_workers(worker_environment(out, num_devices)):
+                    with starting_workers(worker_environment(num_devices)):
                         job = executor.submit(train_part, spec.to_json(), str(out), batch.name, max_batch, options)
                 except Exception as error:  # e.g. sbatch refused the job (partition, account, time limit)
                     raise ClusterError(f"cluster: submitting batch {batch.name} failed: {error}") from None
