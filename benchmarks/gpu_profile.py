@@ -155,7 +155,7 @@ def variant(name: str | None) -> Iterator[None]:
     from amjax.agents import q_learning
     from amjax.batching import uniform_cond
 
-    patches = {"target-cond": [(q_learning, "cheap_cond", uniform_cond)]}.get(name, []) if name else []
+    patches = {None: [], "target-cond": [(q_learning, "cheap_cond", uniform_cond)]}[name]
     saved = [(module, attr, getattr(module, attr)) for module, attr, _ in patches]
     for module, attr, value in patches:
         setattr(module, attr, value)
