@@ -143,19 +143,27 @@ def summarise(events: list[dict[str, Any]], sources: dict[str, str], top: int) -
     }
 
 
+def _target_cond() -> list[tuple[Any, str, Any]]:
+    from amjax.agents import q_learning
+    from amjax.batching import uniform_cond
+
+    return [(q_learning, "cheap_cond", uniform_cond)]
+
+
+# name -> (what it changes, the (module, attribute, value) patches that make it)
 VARIANTS = {
-    "target-cond": "the Q-learners' target update as `uniform_cond` (a conditional) under every strategy, not "
-    "`cheap_cond`'s select under the GPU one",
+    "target-cond": (
+        "the Q-learners' target update as `uniform_cond` (a conditional) under every strategy, not `cheap_cond`'s "
+        "select under the GPU one",
+        _target_cond,
+    ),
 }
 
 
 @contextlib.contextmanager
 def variant(name: str | None) -> Iterator[None]:
     """`VARIANTS[name]` patched in while amjax's programs are traced (nothing for None)."""
-    from amjax.agents import q_learning
-    from amjax.batching import uniform_cond
-
-    patches = {None: [], "target-cond": [(q_learning, "cheap_cond", uniform_cond)]}[name]
+    patches = VARIANTS[name][1]() if name is not None else []
     saved = [(module, attr, getattr(module, attr)) for module, attr, _ in patches]
     for module, attr, value in patches:
         setattr(module, attr, value)
@@ -266,7 +274,8 @@ def main(argv: list[str] | None = None) -> int:
         "--variants",
         type=lambda text: [v for v in text.split(",") if v],
         default=[],
-        help="comma-separated amjax variants to time beside it: " + "; ".join(f"{k}: {v}" for k, v in VARIANTS.items()),
+        help="comma-separated amjax variants to time beside it: "
+        + "; ".join(f"{k}: {v[0]}" for k, v in VARIANTS.items()),
     )
     args = parser.parse_args(argv)
     unknown = sorted(set(args.variants) - set(VARIANTS))
@@ -297,10 +306,9 @@ def main(argv: list[str] | None = None) -> int:
     built = build(case, args.variants)
     print(f"compiled both in {time.perf_counter() - start:.1f} s", flush=True)
     walls = interleaved({impl: run for impl, (run, _) in built.items()}, args.rounds)
-    for impl, rounds in walls.items():  # printed before profiling, which may outlast a time limit
-        steps_per_s = case["configs"] * case["steps"] / min(rounds)
-        print(f"{impl}: best {min(rounds):.3f} s, {steps_per_s / 1e6:.2f} M env-steps/s", flush=True)
     env_steps = case["configs"] * case["steps"]
+    for impl, rounds in walls.items():  # printed before profiling, which may outlast a time limit
+        print(f"{impl}: best {min(rounds):.3f} s, {env_steps / min(rounds) / 1e6:.2f} M env-steps/s", flush=True)
     for impl, (run, texts) in built.items():
         record: dict[str, Any] = {
             "impl": impl,

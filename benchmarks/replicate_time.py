@@ -132,9 +132,11 @@ def probe(env: str, agent: str, seeds: int, probe_steps: int, devices: list) -> 
 
     spec = replicate_specs((env,), (agent,), seeds)[env]
     done: list[dict[str, float]] = []
+
+    def report(current: dict) -> None:  # each step, so that a case past its time limit still says what it measured
+        harness.child_progress({"batches": done, "current": current})
+
     for batch in plan_batches(expand(spec), 1024, len(devices)):
-        # Each step reported, so that a case that runs past its time limit still says what it measured.
-        report = lambda current: harness.child_progress({"batches": done, "current": current})  # noqa: E731
         done.append(probe_batch(batch, spec.total_timesteps, probe_steps, devices, report))
         harness.child_progress({"batches": done})
     return done
