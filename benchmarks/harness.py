@@ -184,8 +184,9 @@ def describe(run: dict[str, Any]) -> str:
     device = f"{m['device']} ({m['backend']})" if m["backend"] != "cpu" else f"{m['affinity']} usable cores"
     ended = f" -> {run['load_end']}" if run["load_end"] is not None else " (the run stopped before its end)"
     load = f"load average {run['load_start']}{ended}"
+    cpu = f"{m['cpu']} ({m['cpu_vector_isa']})" if m.get("cpu_vector_isa") else m["cpu"]  # two EPYCs differ 2x
     return (
-        f"{run['date'][:16].replace('T', ' ')} UTC, commit {run['commit']}, `{run['command']}`; {m['cpu']}, "
+        f"{run['date'][:16].replace('T', ' ')} UTC, commit {run['commit']}, `{run['command']}`; {cpu}, "
         f"{device}, {m['memory_gib']} GiB, jax {m['jax']}; {load}."
     )
 

@@ -6,6 +6,7 @@ time. What a fresh machine pays (issue 52) is the cold run, with an empty compil
     python benchmarks/suite_compile.py --tier slow          # the slow tier (~18 min)
     python benchmarks/suite_compile.py --warm               # with the suite's own cache: what a second run pays
     python benchmarks/suite_compile.py -- tests/agents/test_algorithms.py   # pytest's arguments after `--`
+    python benchmarks/suite_compile.py --per-test tests.jsonl              # also every test's own record
 
 The run is `python -m pytest -q -p benchmarks.suite_compile ...` (this module is also the pytest plugin that
 listens to JAX's events, in each xdist worker) with `JAX_COMPILATION_CACHE_DIR` set to a new empty folder unless
@@ -41,6 +42,7 @@ _EVENTS = {  # JAX's duration events (jax/_src/dispatch.py, compiler.py) -> the 
     "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
     "/jax/compilation_cache/cache_retrieval_time_sec": "cache_load_s",
 }
+SLOW_S = 20  # a test over this many seconds with an empty cache belongs in the slow tier (tests/conftest.py)
 FIELDS = ("tests", "wall_s", "programs", "compile_s", "trace_s", "lower_s", "cache_hits", "cache_load_s")
 
 
@@ -124,30 +126,46 @@ def by_file(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return sorted(rows, key=lambda row: (-row["wall_s"], -row["compile_s"]))
 
 
+def compile_cache(warm: bool, cache: str | None, scratch: Path) -> tuple[str | None, str]:
+    """The compile cache folder a run sets (None: the suite's own, tests/conftest.py) and its state, "empty" or
+    "warm": `cache` (kept after the run) or a new folder under `scratch`, empty unless `cache` holds entries."""
+    if warm:
+        return None, "warm"
+    folder = Path(cache) if cache else scratch / "cache"
+    return str(folder), "warm" if folder.is_dir() and any(folder.iterdir()) else "empty"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tier", choices=("default", "slow", "all"), default="default", help="the suite's tier")
-    parser.add_argument("--warm", action="store_true", help="use the suite's own compile cache instead of an empty one")
+    caches = parser.add_mutually_exclusive_group()
+    caches.add_argument("--warm", action="store_true", help="use the suite's own compile cache instead of an empty one")
+    caches.add_argument("--cache", help="use this compile cache folder and keep what the run compiles into it")
     parser.add_argument("--out", help="the results file (default: results/suite_compile_<date>_<machine>.jsonl)")
+    parser.add_argument("--per-test", help="also write every test's record to this JSON-lines file")
     parser.add_argument("pytest_args", nargs="*", help="test paths or pytest options (after --)")
     args = parser.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="suite-compile-") as scratch:
         env = {**os.environ, RECORDS_ENV: str(Path(scratch) / "records")}
         Path(env[RECORDS_ENV]).mkdir()
-        if not args.warm:
-            env["JAX_COMPILATION_CACHE_DIR"] = str(Path(scratch) / "cache")
+        folder, state = compile_cache(args.warm, args.cache, Path(scratch))
+        if folder:
+            env["JAX_COMPILATION_CACHE_DIR"] = folder
         command = [sys.executable, "-m", "pytest", "-q", "-p", "benchmarks.suite_compile", "--tier", args.tier]
-        settings = {"tier": args.tier, "cache": "warm" if args.warm else "empty", "pytest": args.pytest_args}
+        settings = {"tier": args.tier, "cache": state, "pytest": args.pytest_args}
         recorder = harness.Recorder("suite_compile", settings, args.out)
         start = time.perf_counter()
         status = subprocess.run([*command, *args.pytest_args], cwd=harness.ROOT, env=env).returncode
         wall = time.perf_counter() - start
         records = read_records(env[RECORDS_ENV])
+    if args.per_test:
+        Path(args.per_test).write_text("".join(json.dumps(record) + "\n" for record in records))
     for row in by_file(records):
         recorder.case({"case": row["file"], "status": "ok", **row})
     totals = {f: round(sum(r.get(f, 0) for r in records), 1) for f in FIELDS}
     slowest = sorted(records, key=lambda r: -r.get("wall_s", 0))[:20]
+    over = [r for r in records if r["test"] != "<collection>" and r.get("wall_s", 0) > SLOW_S]
     recorder.case(
         {
             "case": "total",
@@ -155,6 +173,7 @@ def main(argv: list[str] | None = None) -> int:
             "wall_clock_s": round(wall, 1),
             **totals,
             "slowest": [{k: r.get(k, 0) for k in ("test", "wall_s", "programs", "compile_s")} for r in slowest],
+            "over_slow_s": len(over) if args.tier == "default" and state == "empty" else None,
         }
     )
     recorder.end()
@@ -177,6 +196,8 @@ def render(runs: list[dict[str, Any]]) -> str:
                 f"{total['trace_s']:,.0f} s, lowering {total['lower_s']:,.0f} s, {total['cache_hits']:,.0f} loaded "
                 f"from the cache; the tests' own time {total['wall_s']:,.0f} worker-seconds.\n"
             )
+            if total.get("over_slow_s") is not None:
+                out.append(f"Default-tier tests over the slow tier's {SLOW_S} s: {total['over_slow_s']}.\n")
         columns = [("file", lambda c: c["case"])] + [(f, lambda c, f=f: c[f]) for f in FIELDS]
         out.append("\n" + harness.markdown_table(cases, columns))
         if total:

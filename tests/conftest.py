@@ -58,10 +58,12 @@ def _release_programs_near_the_map_limit():
 
 
 # Test tiers. `python -m pytest -q` (the README's command) runs the default tier: every test not marked slow. A test is
-# marked slow when it takes over about 20 s on two CPU cores with a warm compile cache (learning runs, kill-and-resume
-# chains through subprocesses, the notebooks, the README demo, whole sweeps, large LunarLander batches);
-# `--tier slow` runs those alone and `--tier all` both. CI runs both tiers (.ci/run). A test named on the command line
-# (`path::name`) runs whatever its tier, and `-m EXPR` selects by its own expression instead.
+# marked slow when it takes over about 20 s on two CPU cores with an empty compile cache, as on a fresh machine
+# (`python benchmarks/suite_compile.py` counts the default tier's tests over that bound): whole training programs
+# (vmapped-against-alone checks, learning runs), kill-and-resume chains through subprocesses, the notebooks, the
+# README demo, whole sweeps, LunarLander batches and brax steps; `--tier slow` runs those alone and `--tier all` both.
+# CI runs both tiers (.ci/run). A test named on the command line (`path::name`) runs whatever its tier, and `-m EXPR`
+# selects by its own expression instead.
 TIERS = ("default", "slow", "all")
 
 

@@ -109,6 +109,7 @@ def test_select_compacted_rejects_bad_chunk_settings(kwargs, message):
 
 @settings(max_examples=30, deadline=None)
 @given(mask=st.lists(st.booleans(), min_size=12, max_size=12), seed=st.integers(0, 2**31 - 1))
+@pytest.mark.slow
 def test_uniform_cond_equals_cond_per_member(mask, seed):
     pred = jnp.array(mask).reshape(3, 4)
     x, y = jax.random.normal(jax.random.PRNGKey(seed), (2, 3, 4))

@@ -140,3 +140,18 @@ def test_the_suite_profile_counts_each_tests_programs(tmp_path):
     assert tests["test_two.py::test_compiles_none"].get("programs", 0) == 0
     (row,) = [r for r in suite_compile.by_file(list(tests.values())) if r["file"] == "test_two.py"]
     assert row["tests"] == 2 and row["programs"] == tests["test_two.py::test_compiles_two"]["programs"]
+
+
+def test_the_suite_profile_names_its_cache_empty_or_warm(tmp_path):
+    """A run's compile cache: a new folder (empty), a kept folder that is empty or holds entries, or the suite's own
+    (warm); only an empty one counts the default tier's tests over the slow tier's bound."""
+    from benchmarks.suite_compile import compile_cache
+
+    assert compile_cache(False, None, tmp_path) == (str(tmp_path / "cache"), "empty")
+    kept = tmp_path / "kept"
+    assert compile_cache(False, str(kept), tmp_path) == (str(kept), "empty")  # not made yet
+    kept.mkdir()
+    assert compile_cache(False, str(kept), tmp_path)[1] == "empty"
+    (kept / "jit_f-cache").write_bytes(b"x")
+    assert compile_cache(False, str(kept), tmp_path) == (str(kept), "warm")
+    assert compile_cache(True, None, tmp_path) == (None, "warm")

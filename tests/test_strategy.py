@@ -97,6 +97,7 @@ def _configs(agent: str) -> list:
 
 
 @pytest.mark.parametrize("agent", ["ppo", "dqn", "drqn"])
+@pytest.mark.slow
 def test_the_gpu_layout_trains_as_the_cpu_layout(agent, monkeypatch) -> None:
     """A sweep batch's programs compiled for each strategy on the CPU: the same evaluation rows and re-scores (to
     float rounding, which training may grow a little), and two compiled programs, not one."""
@@ -119,6 +120,7 @@ def test_the_gpu_layout_trains_as_the_cpu_layout(agent, monkeypatch) -> None:
         jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-3), got, want)
 
 
+@pytest.mark.slow
 def test_trainers_compile_one_program_per_strategy(monkeypatch) -> None:
     """`train` keys its compiled program on the strategy current at the call: a later override traces again."""
     from amjax.agents import dqn
@@ -152,6 +154,7 @@ def test_cheap_cond_is_a_select_under_gpu_and_a_branch_under_cpu(pred) -> None:
         assert ("cond[" in jaxpr) == (name == "cpu")
 
 
+@pytest.mark.slow
 def test_a_sweep_compiles_for_the_strategy_of_its_caller(tmp_path, monkeypatch) -> None:
     """`run_sweep` compiles its batches on a background thread; a `strategy.use` block around it reaches them."""
     from amjax.sweep import SweepSpec, run_sweep

@@ -57,6 +57,7 @@ def trees(draw: st.DrawFn) -> dict:
 
 @settings(max_examples=40, deadline=None)
 @given(trees())
+@pytest.mark.slow
 def test_pack_then_unpack_gives_the_tree_back_bit_for_bit(tree: dict) -> None:
     layout = TreeLayout.of(tree)
     words = layout.pack(tree)

@@ -49,6 +49,7 @@ def test_imported_amjax_set_the_option_and_xla_compiles_a_loop_as_one_kernel():
     assert "xla_cpu_small_call" in compiled.as_text()
 
 
+@pytest.mark.slow
 def test_lunar_lander_loops_are_single_kernels():
     from amjax.envs.lunar_lander import LunarLander
 
@@ -63,6 +64,7 @@ def test_lunar_lander_loops_are_single_kernels():
     assert text.count('xla_cpu_small_call="true"') >= 6
 
 
+@pytest.mark.slow
 def test_jit_one_kernel_compiles_a_lunar_lander_step_as_one_kernel_with_jits_results():
     """One env's step (typed keys in and out, a state pytree, an info dict): the program's entry holds one kernel,
     the loop, and every output equals `jax.jit`'s to float rounding, step after step."""
@@ -108,6 +110,7 @@ print(len(caught), caught[0].message if caught else "")
 """
 
 
+@pytest.mark.slow
 def test_warning_when_jax_compiled_before_amjax_was_imported():
     done = _python(LATE)
     assert done.returncode == 0, done.stderr[-2000:]

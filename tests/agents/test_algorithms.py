@@ -135,6 +135,7 @@ def test_replay_ring_and_sampling():
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn", "ppo-box"])
+@pytest.mark.slow
 def test_seeds_determinism_and_vmap_equals_alone(name, assert_batch_equals_alone, training_programs):
     base = TINY[name]
     lanes = [(0.0, 1e-3, 1.0), (0.2, 3e-4, 0.1), (0.1, 5e-4, 0.5)]  # cost, learning rate, reward scale: all traced
@@ -153,6 +154,7 @@ def test_seeds_determinism_and_vmap_equals_alone(name, assert_batch_equals_alone
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn"])
+@pytest.mark.slow
 def test_train_group_equals_all_at_once(name, assert_batch_equals_alone, training_programs):
     """`train_group` = 2 trains 4 vmapped configurations as 2 groups of 2 (a `lax.map`): each configuration
     equals its ungrouped batch row and its run alone."""
@@ -168,6 +170,7 @@ def test_train_group_equals_all_at_once(name, assert_batch_equals_alone, trainin
 
 
 @pytest.mark.parametrize("name", ["dqn", "ppo-box"])
+@pytest.mark.slow
 def test_instrument_prices_vmap_equals_alone(name, assert_batch_equals_alone):
     """Instruments' prices are traced: a batch of prices is one program, config i in it equals config i alone
     (CartPole's cart and pole under Dueling DQN's factored head; Pendulum's angle and rate, two Bernoulli measure
@@ -182,6 +185,7 @@ def test_instrument_prices_vmap_equals_alone(name, assert_batch_equals_alone):
 
 
 @pytest.mark.parametrize("name", ["dqn", "ppo"])
+@pytest.mark.slow
 def test_cost_conditioned_runs(name, assert_batch_equals_alone):
     """A cost-conditioned run's range is traced: a batch of ranges is one program, config i in it equals config i
     alone. The greedy action of a trained conditioned policy changes with the cost it sees (the scaled last entry
@@ -215,6 +219,7 @@ def test_cost_conditioned_runs(name, assert_batch_equals_alone):
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn"])
+@pytest.mark.slow
 def test_divergent_configuration_is_flagged_alone(name, training_programs):
     configs = [TINY[name].replace(learning_rate=lr, max_grad_norm=1e30) for lr in (1e-3, 1e30, 3e-4)]
     keys = jnp.stack([jax.random.PRNGKey(0)] * 3)
@@ -322,6 +327,7 @@ def test_setup_puts_each_configurations_traced_cost_into_the_env_params(name):
 
 
 @pytest.mark.parametrize("name", ["dqn", "drqn"])
+@pytest.mark.slow
 def test_reward_scale_multiplies_the_stored_rewards(name):
     """Q-learning's traced `reward_scale` multiplies the rewards replay stores (measurement costs included): on the
     same key, before learning starts, 0.5 stores exactly half of every reward 1.0 stores and everything else the

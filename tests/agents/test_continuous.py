@@ -107,6 +107,7 @@ def test_agents_for_discrete_actions_refuse_box_envs_before_compiling():
         DQNConfig(env_id="Pendulum-v1").validate()
 
 
+@pytest.mark.slow
 def test_box_policy_round_trip_and_actor(tmp_path):
     state, _ = ppo.train(TINY.replace(cost=0.1), jax.random.key(0))
     saved = load_policy(save_policy(tmp_path / "pendulum.msgpack", TINY.replace(cost=0.1), state.best_params))

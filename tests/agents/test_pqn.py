@@ -86,6 +86,7 @@ TINY = PQNConfig(
 )
 
 
+@pytest.mark.slow
 def test_vmap_equals_alone_and_seeds_differ(assert_batch_equals_alone, training_programs):
     settings = [(0.0, 1e-3, 0.9), (0.2, 3e-4, 0.5)]
     configs = [TINY.replace(cost=c, learning_rate=lr, q_lambda=lam) for c, lr, lam in settings]
@@ -109,6 +110,7 @@ def test_bad_fields_name_themselves():
         TINY.replace(layer_norm="yes").validate()
 
 
+@pytest.mark.slow
 def test_saved_policy_round_trip_and_actor(tmp_path):
     """A trained PQN policy saved and loaded acts and scores as in memory; its NumPy actor (the Gymnasium bridge's)
     takes the network's greedy action, LayerNorm parameters included."""
@@ -128,6 +130,7 @@ def test_saved_policy_round_trip_and_actor(tmp_path):
     assert any("LayerNorm" in name for name in state.best_params["params"]["MLP_0"])
 
 
+@pytest.mark.slow
 def test_recurrent_targets_bootstrap_from_the_carry_after_each_step():
     """Recurrent PQN's targets against a step-by-step reference: the network called one env step at a time from a
     mid-episode hidden state, each next observation's value one more step from the carry after its step (no reset),

@@ -101,6 +101,7 @@ def probe_run(training_programs):
 
 
 @pytest.mark.parametrize("name", RECURRENT)
+@pytest.mark.slow
 def test_recurrent_agents_solve_the_memory_probe(name, probe_run):
     _, _, rows = probe_run(name)
     final = rows.test.costed_return[:, -1]
@@ -108,6 +109,7 @@ def test_recurrent_agents_solve_the_memory_probe(name, probe_run):
 
 
 @pytest.mark.parametrize("name", ["dqn", "ppo"])
+@pytest.mark.slow
 def test_feed_forward_agents_cannot_solve_the_memory_probe(name, probe_run):
     _, _, rows = probe_run(name)
     final = rows.test.costed_return[:, -1]
@@ -116,6 +118,7 @@ def test_feed_forward_agents_cannot_solve_the_memory_probe(name, probe_run):
 
 
 @pytest.mark.parametrize("name", RECURRENT)
+@pytest.mark.slow
 def test_vmapped_configuration_equals_it_alone(name, probe_run, training_programs):
     stacked, _, rows = probe_run(name)
     for i in (0, 2):
@@ -285,6 +288,7 @@ def _drqn_buffer(burn_in=3):
     return config, state
 
 
+@pytest.mark.slow
 def test_stored_sequences_keep_their_episode_boundaries():
     config, state = _drqn_buffer()
     steps = jax.device_get(state.buffer.storage["steps"])
@@ -297,6 +301,7 @@ def test_stored_sequences_keep_their_episode_boundaries():
     assert np.all(steps["next_obs"][:filled, :, 0] == 0)
 
 
+@pytest.mark.slow
 def test_targets_never_reach_into_the_next_episode():
     config, state = _drqn_buffer()
     steps, start = sequence_sample(state.buffer, jax.random.PRNGKey(0), 16)
@@ -330,6 +335,7 @@ def test_targets_never_reach_into_the_next_episode():
 # -- stored state + burn-in ---------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_stored_start_state_is_the_actors_hidden_state():
     """With unchanged parameters, unrolling a stored sequence from its stored state reproduces the hidden states
     the actor had: the state after `train_freq` steps is the next stored sequence's start."""
@@ -344,6 +350,7 @@ def test_stored_start_state_is_the_actors_hidden_state():
         np.testing.assert_allclose(carry[0], storage["start"]["carry"][slot + n], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_cached_target_values_follow_the_target_network(monkeypatch):
     """The buffer's cached target values equal a fresh target-network unroll of every stored sequence: those stored
     before the last target update (refreshed there, in chunks with a remainder) and after it (computed when
@@ -444,6 +451,7 @@ def test_invalid_recurrent_configs_name_the_field():
         PQNRNNConfig(cell="rnn").validate()
 
 
+@pytest.mark.slow
 def test_lstm_cells_train_and_checkpoint_as_arrays():
     config = PROBE_CONFIGS["drqn"].replace(cell="lstm")
     state = drqn.init(config, _setup(config), jax.random.PRNGKey(0))

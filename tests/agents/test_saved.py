@@ -40,6 +40,7 @@ def _in_memory(config, params, key, episodes, module):
     return {k: float(v) for k, v in dataclasses.asdict(means).items()}
 
 
+@pytest.mark.slow
 def test_save_load_evaluate_equals_in_memory(tmp_path, trained):
     state, rows = trained
     path = save_policy(tmp_path / "p.msgpack", PPO_CONFIG, state.best_params, {"note": "test"})
@@ -69,6 +70,7 @@ RECURRENT = {
 
 
 @pytest.mark.parametrize("name", sorted(RECURRENT))
+@pytest.mark.slow
 def test_recurrent_policy_round_trip_and_actor(tmp_path, name):
     """A recurrent Q-network's policy (pqn-rnn's with LayerNorm parameters) saved and loaded scores as in memory."""
     module, config = RECURRENT[name]

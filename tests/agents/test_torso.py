@@ -94,6 +94,7 @@ def test_the_cnn_is_minatars_and_the_mlp_flattens():
     batch=st.lists(st.integers(1, 3), max_size=2),
     seed=st.integers(0, 2**16),
 )
+@pytest.mark.slow
 def test_patch_conv_is_flaxs_convolution(height, width, channels, batch, seed):
     """The convolution as one product of patches: flax's `nn.Conv` (3 x 3, no padding) with the same parameters,
     its gradients too, for any image size and batch axes."""
@@ -159,6 +160,7 @@ CATCH = {
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn"])
+@pytest.mark.slow
 def test_cnn_agents_in_a_vmapped_batch_equal_alone(name, assert_batch_equals_alone):
     """Catch's [10, 5] board as an image: each configuration of a vmapped batch (its convolutions batched over
     configurations) equals the same configuration trained alone, and different seeds differ."""

@@ -66,6 +66,7 @@ def _nonempty_image(path: Path) -> None:
 # -- loading -----------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_load_results(data, sweep_dir):
     results, summary, metadata = data
     assert len(results) == 6 * 4  # (2 costs + vanilla) x 2 seeds, 4 evaluations each
@@ -76,6 +77,7 @@ def test_load_results(data, sweep_dir):
     assert analysis.load_results(sweep_dir).results.equals(results)
 
 
+@pytest.mark.slow
 def test_load_results_errors(tmp_path, sweep_dir):
     with pytest.raises(analysis.NotASweepError, match="no such folder"):
         analysis.load_results(tmp_path / "missing")
@@ -338,6 +340,7 @@ def test_agent_config_from_metadata(data):
 # -- report --------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_write_report(sweep_dir, tmp_path):
     report = analysis.write_report(sweep_dir, tmp_path / "report", formats=("png", "svg"))
     text = report.read_text()
@@ -354,6 +357,7 @@ def test_write_report(sweep_dir, tmp_path):
     assert "Not drawn (maps=False" in analysis.write_report(sweep_dir, tmp_path / "nomaps", maps=False).read_text()
 
 
+@pytest.mark.slow
 def test_report_on_partial_sweep(sweep_dir, tmp_path):
     # No vanilla, one cost, one seed, half the evaluations: as a sweep interrupted early.
     partial = _partial_copy(
@@ -370,6 +374,7 @@ def test_report_on_partial_sweep(sweep_dir, tmp_path):
     _nonempty_image(partial / "report" / "figures" / "learning_curves.png")
 
 
+@pytest.mark.slow
 def test_report_command(sweep_dir, tmp_path, capsys):
     assert report_cli.main([str(sweep_dir), "--out", str(tmp_path / "r")]) == 0
     assert (tmp_path / "r" / "report.md").exists()

@@ -89,6 +89,7 @@ def brax_functions(env: brax_env.BraxEnv):
 
 
 @pytest.mark.parametrize("env_name", sorted(MAX_STEPS))
+@pytest.mark.slow
 def test_matches_brax_step_for_step(env_name):
     env, params, inputs, out = brax_run(env_name)
     reset, step = brax_functions(env)
@@ -114,6 +115,7 @@ def test_matches_brax_step_for_step(env_name):
             np.testing.assert_allclose(out["obs"][member, t], state.obs, rtol=1e-5, atol=1e-5, err_msg=where)
 
 
+@pytest.mark.slow
 def test_episodes_end_by_termination_and_by_truncation():
     *_, pendulum = brax_run("inverted_pendulum")
     *_, reacher = brax_run("reacher")
@@ -132,6 +134,7 @@ def test_episodes_end_by_termination_and_by_truncation():
 
 
 @pytest.mark.parametrize("env_name", sorted(MAX_STEPS))
+@pytest.mark.slow
 def test_every_reset_draws_fresh_randomness(env_name):
     # brax's own AutoResetWrapper would restart every episode from the same first state; here each reset, the first
     # and the automatic ones, of each member differs from all the others.
@@ -229,6 +232,7 @@ def check_box_measuring(env_id, plain_env, plain_params, plain_out, reset_key, s
     return done
 
 
+@pytest.mark.slow
 def test_brax_env_through_make_charges_only_measurements():
     plain, params, inputs, out = brax_run("inverted_pendulum")
     plain_out = {

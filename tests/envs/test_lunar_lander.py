@@ -144,6 +144,7 @@ def test_action_decoding_matches_gymnasium() -> None:
 
 
 # --- T2: free flight on Gymnasium's recorded draws -------------------------------------------------
+@pytest.mark.slow
 def test_free_flight_replay_matches_gymnasium() -> None:
     """Random actions until Gymnasium's first ground contact: |obs diff| <= 1e-3 (measured
     ~5e-6: the joints are ported), per-step |reward diff| <= 1e-2. 200 seeds: the benchmark."""
@@ -194,6 +195,7 @@ def test_spaces_and_metadata() -> None:
     assert env.default_params.max_steps_in_episode == 1000
 
 
+@pytest.mark.slow
 def test_vmap_256_envs_300_steps_finite() -> None:
     """env.step (gymnax auto-reset) vmapped over 256 envs and over params (gravity, wind).
 
@@ -252,6 +254,7 @@ def _short_episodes_rollout(step, env: LunarLander, n: int):
     return rollout
 
 
+@pytest.mark.slow
 def test_auto_reset_matches_gymnax_select_both() -> None:
     """`LunarLander.step` resets a vmapped batch only on steps where some env is done; gymnax computes a reset
     every step and selects. Same keys, same results (to XLA's rounding: the two are different programs)."""
@@ -430,6 +433,7 @@ def test_exact_joint_solve_is_the_sweeps_fixed_point() -> None:
 
 
 @pytest.mark.parametrize("solver", [{}, {"exact_free_flight": True}], ids=["default", "exact_free_flight"])
+@pytest.mark.slow
 def test_vmapped_equals_one_env_at_a_time(solver) -> None:
     """Under vmap the envs that finished an episode, the envs on the ground and the envs that need more position
     iterations run as compacted batches scattered back: each step of the batch gives what each env's step gives

@@ -17,6 +17,7 @@ from amjax.envs.registry import make_env, registered_envs
 STEPS = 30
 
 
+@pytest.mark.slow
 def test_craftax_steps_as_craftax(rollout):
     """Same keys: the adapter's reset is Craftax's `reset_env(key)`, each step Craftax's `step_env` with the first
     half of the step's key (gymnax's split); death and lava are terminations, the time limit is not."""
@@ -27,7 +28,7 @@ def test_craftax_steps_as_craftax(rollout):
     craftax = make_craftax_env_from_name("Craftax-Classic-Symbolic-v1", auto_reset=False)
     actions = jnp.asarray(np.random.default_rng(0).integers(0, 17, STEPS))
     got = rollout(env, params, jax.random.key(3), actions)
-    want, state = craftax.reset_env(jax.random.split(jax.random.key(3))[0], craftax.default_params)
+    want, state = jax.jit(craftax.reset_env)(jax.random.split(jax.random.key(3))[0], craftax.default_params)
     np.testing.assert_allclose(got.obs0, want, rtol=0, atol=1e-6)  # one program against another: float rounding
     step = jax.jit(craftax.step_env)
     for t in range(STEPS):
@@ -69,7 +70,10 @@ def test_xminigrid_steps_as_xminigrid_one_hot(rollout):
     assert env.observation_space(params).shape == (7, 7, NUM_TILES + NUM_COLORS)
 
 
-@pytest.mark.parametrize("env_id", ["xminigrid:MiniGrid-Empty-8x8", "craftax:Craftax-Classic-Symbolic-v1"])
+@pytest.mark.parametrize(
+    "env_id",
+    ["xminigrid:MiniGrid-Empty-8x8", pytest.param("craftax:Craftax-Classic-Symbolic-v1", marks=pytest.mark.slow)],
+)
 def test_the_time_limit_truncates_and_resets(rollout, env_id):
     """A limit of 5 steps (a traced param: the program the step tests above compiled, reused) truncates every
     fifth step and never terminates while the agent stands still."""

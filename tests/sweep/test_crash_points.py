@@ -162,6 +162,7 @@ def test_every_local_commit_point_recovers(local_points, tmp_path):
         assert_same_sweep(out, reference, where=f"stopped at {name}")
 
 
+@pytest.mark.slow
 def test_a_marker_without_its_files_is_redone(local_points, tmp_path):
     """A finished folder that lost a policy, a checkpoint or its rows: the rerun redoes what is missing (the
     policy without training; the checkpoint and rows by training the batch again) instead of trusting the
@@ -234,6 +235,7 @@ WRITES = [
 @pytest.mark.parametrize(
     ("code", "write"), [*(("ENOSPC", w) for w in WRITES), ("EACCES", "policies/"), ("EROFS", "finished/")]
 )
+@pytest.mark.slow
 def test_a_refused_write_stops_with_a_message_and_a_rerun_completes(
     cli_run, tmp_path, capsys, monkeypatch, code, write
 ):

@@ -168,6 +168,7 @@ print(count, len(jax.devices("cpu")), any("use_all_cores" in str(w.message) for 
     assert _python(code).split() == ["1", "1", "True"]
 
 
+@pytest.mark.slow
 def test_sharded_sweep_restores_the_mulhi_lowering(tmp_path):
     """The plain-ops mulhi lowering applies while a sharded sweep is lowered, not after it."""
     code = f"""

@@ -96,6 +96,7 @@ def test_memory_maps_reads_this_process_and_the_kernels_limit():
     assert 0 < used < limit
 
 
+@pytest.mark.slow
 def test_finished_batches_programs_are_unloaded_near_the_memory_map_limit(tmp_path, monkeypatch):
     """Each batch's programs stay loaded while the runner's jitted functions live (their mappings counted by the
     kernel); near the limit the runner drops them after each batch, and the mappings they held are returned."""

@@ -76,6 +76,7 @@ def logged(tmp_path_factory):
     return out, result.results, fake
 
 
+@pytest.mark.slow
 def test_tensorboard_one_run_per_config_with_the_results_values(logged):
     out, results, _ = logged
     assert sorted(p.name for p in (out / "tensorboard").iterdir()) == sorted(results.config_id.unique())
@@ -107,6 +108,7 @@ def test_wandb_offline_needs_no_network(logged):
     assert all(next(p.glob("run-*.wandb")).stat().st_size > 0 for p in runs)
 
 
+@pytest.mark.slow
 def test_cli_tensorboard_flag_and_bad_mode(tmp_path, capsys, tiny_sweep_flags):
     args = ["sweep", *tiny_sweep_flags(steps=1024, extra=("--tensorboard",)), "--out", str(tmp_path / "run")]
     assert main(args) == 0

@@ -33,6 +33,7 @@ def front_folder(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_writes_the_front_the_table_and_the_plot(front_folder):
     points = pd.read_csv(front_folder / "front.csv")
     # 2 seeds x the grid 0, 0.25, 0.5 and the specialists' 0.2.
@@ -49,6 +50,7 @@ def test_writes_the_front_the_table_and_the_plot(front_folder):
     assert conditioned.cost_conditioned.all() and (conditioned.env_steps == 3072).all()
 
 
+@pytest.mark.slow
 def test_rerun_resumes_without_training_again(front_folder, capsys):
     before = pd.read_parquet(front_folder / "conditioned" / "results.parquet")
     front = pd.read_csv(front_folder / "front.csv")
@@ -57,6 +59,7 @@ def test_rerun_resumes_without_training_again(front_folder, capsys):
     pd.testing.assert_frame_equal(pd.read_csv(front_folder / "front.csv"), front)  # the test episodes' keys are fixed
 
 
+@pytest.mark.slow
 def test_table_ratio_against_the_specialists(front_folder):
     points = pd.read_csv(front_folder / "front.csv")
     specialists = load_results(front_folder / "specialists").summary
@@ -72,6 +75,7 @@ def test_table_ratio_against_the_specialists(front_folder):
     assert negative["gap"].iloc[0] == pytest.approx(-gap)  # a higher (less negative) reward is a positive gap
 
 
+@pytest.mark.slow
 def test_front_of_an_ordinary_sweep_is_refused(front_folder):
     with pytest.raises(ValueError, match="not cost-conditioned"):
         cost_front(front_folder / "specialists", costs=(0.1,))

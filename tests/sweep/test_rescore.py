@@ -32,6 +32,7 @@ def sweep(tmp_path_factory):
     return run_sweep(SPEC, tmp_path_factory.mktemp("rescore"), progress=False, target_chunks=2)
 
 
+@pytest.mark.slow
 def test_summary_and_policies_carry_the_rescored_figures(sweep):
     summary = sweep.summary.set_index("config_id")
     assert np.isfinite(summary.best_policy_return).all() and (summary.best_policy_episodes == 16).all()
@@ -55,6 +56,7 @@ def test_summary_and_policies_carry_the_rescored_figures(sweep):
     assert "best_policy_return_median" in pd.read_csv(sweep.out / "seed_summary.csv").columns
 
 
+@pytest.mark.slow
 def test_sweep_rescore_equals_the_run_alone(sweep):
     """Config i re-scored inside the sweep == the same config trained alone and re-scored."""
     summary = sweep.summary.set_index("config_id")

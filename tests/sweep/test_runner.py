@@ -118,6 +118,7 @@ def test_agent_scoped_hyperparameters():
             expand(SweepSpec(agents=("ppo", "dqn"), hyperparams=bad))
 
 
+@pytest.mark.slow
 def test_full_run_tables(full_run):
     results, summary = full_run.results, full_run.summary
     assert len(results) == 8 * 4 and not results.duplicated(["config_id", "env_steps"]).any()
@@ -137,6 +138,7 @@ def test_full_run_tables(full_run):
     assert len(full_run.table) == 4 and (full_run.table.seeds == 2).all()
 
 
+@pytest.mark.slow
 def test_best_policy_per_config_reproduces_its_best_score(full_run):
     import jax
 
@@ -161,6 +163,7 @@ def test_best_policy_per_config_reproduces_its_best_score(full_run):
 
 
 @pytest.mark.parametrize("checkpoint_every_s", [0.0, 1e9])
+@pytest.mark.slow
 def test_resume_after_interrupt(tmp_path, full_run, checkpoint_every_s, stop_sweep_after):
     """Interrupted after 2 of 4 chunks (with a checkpoint, or with results written past the last checkpoint),
     the rerun finishes with exactly the rows of an uninterrupted run."""
@@ -183,6 +186,7 @@ def test_resume_after_interrupt(tmp_path, full_run, checkpoint_every_s, stop_swe
     np.testing.assert_allclose(a[VALUE_COLUMNS].to_numpy(float), b[VALUE_COLUMNS].to_numpy(float), rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_next_batch_compiles_while_one_trains(tmp_path, monkeypatch):
     """Each batch's programs compile on a background thread while the batch before it trains, and checkpoints are
     written on a thread of their own; a failed compile stops the sweep with its error and loses nothing already
@@ -282,6 +286,7 @@ def test_failed_write_keeps_the_old_file(tmp_path):
     assert path.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["table.csv"]
 
 
+@pytest.mark.slow
 def test_rerun_clears_partial_writes_of_a_killed_run(tmp_path, full_run):
     out = shutil.copytree(full_run.out, tmp_path / "run")
     leftovers = [out / ".results.parquet.k9x2.partial", out / "checkpoints" / ".ppo-x.msgpack.a1b2.partial"]
@@ -294,6 +299,7 @@ def test_rerun_clears_partial_writes_of_a_killed_run(tmp_path, full_run):
     pd.testing.assert_frame_equal(rerun.table, full_run.table)
 
 
+@pytest.mark.slow
 def test_folder_busy_with_another_process_is_refused(tmp_path, full_run, capsys):
     out = shutil.copytree(full_run.out, tmp_path / "run")
     before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
@@ -323,6 +329,7 @@ def test_folder_busy_with_another_process_is_refused(tmp_path, full_run, capsys)
     run_sweep(TINY, out, progress=False, target_chunks=4)  # the lock is gone with its holder
 
 
+@pytest.mark.slow
 def test_folder_with_another_sweep_is_refused(tmp_path, full_run, capsys):
     other = SweepSpec(**{**TINY.__dict__, "costs": (0.2,)})
     before = {p: p.stat().st_mtime_ns for p in full_run.out.rglob("*")}
@@ -367,6 +374,7 @@ def test_identity_differences_name_each_differing_entry_and_count_the_rest():
     assert "amjax.presets" in shown[4]
 
 
+@pytest.mark.slow
 def test_a_preset_added_for_another_agent_leaves_a_folder_resumable(full_run, monkeypatch):
     """A folder is identified by the presets of its own agents: a CartPole preset added for Dueling DQN after a PPO
     sweep was written leaves it resumable; one added for PPO makes it another sweep, refused before any write."""
@@ -450,6 +458,7 @@ def test_summaries_by_hand():
     assert table.diverged[0] == 1
 
 
+@pytest.mark.slow
 def test_cli_accepts_any_budget_and_records_the_rounding(tmp_path, capsys):
     """Like SB3 and CleanRL, any --steps / --eval-every: rounded to whole updates (here 4 envs x 32 steps = 128)
     and whole evaluation periods, said in one line and kept in metadata.json."""

@@ -86,6 +86,7 @@ def settings_pair(draw):
 
 @settings(max_examples=12, deadline=None)
 @given(pair=settings_pair())
+@pytest.mark.slow
 def test_make_keywords_and_spec_build_the_same_env(pair):
     keywords, spec = pair
     env_a, params_a = amjax.make("CartPole-v0", **keywords)

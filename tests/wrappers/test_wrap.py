@@ -238,6 +238,7 @@ def test_vanilla_wraps_too():
     assert bool(np.all(measured)) and not np.any(cost)
 
 
+@pytest.mark.slow
 def test_registered_walk_trains_in_a_sweep(tmp_path, monkeypatch):
     """An env of your own given an id trains in the sweep runner like a built-in one (same process)."""
     from amjax.envs import registry
