@@ -2,16 +2,18 @@
 and lowering them, and the hits of the persistent compile cache (JAX's monitoring events), beside the tests' wall
 time. What a fresh machine pays (issue 52) is the cold run, with an empty compile cache.
 
-    python benchmarks/suite_compile.py                      # the default tier, cache empty (~22 min on 2 cores)
-    python benchmarks/suite_compile.py --tier slow          # the slow tier (~18 min)
+    python benchmarks/suite_compile.py                      # the default tier, cache empty (~11 min on 2 cores)
+    python benchmarks/suite_compile.py --cache DIR          # the same, filling DIR (kept) with what it compiles
+    python benchmarks/suite_compile.py --tier slow --cache DIR   # then the slow tier on it, as CI runs (~54 min)
     python benchmarks/suite_compile.py --warm               # with the suite's own cache: what a second run pays
     python benchmarks/suite_compile.py -- tests/agents/test_algorithms.py   # pytest's arguments after `--`
     python benchmarks/suite_compile.py --per-test tests.jsonl              # also every test's own record
 
 The run is `python -m pytest -q -p benchmarks.suite_compile ...` (this module is also the pytest plugin that
 listens to JAX's events, in each xdist worker) with `JAX_COMPILATION_CACHE_DIR` set to a new empty folder unless
-`--warm`. Its records go through the harness into `results/suite_compile_<date>_<machine>.jsonl`: one case per test
-file, then the tier's totals with its 20 slowest tests; the `.md` beside it is rendered from them. Programs compiled
+`--warm` or `--cache`. Its records go through the harness into `results/suite_compile_<date>_<machine>.jsonl`: one
+case per test file, then the tier's totals with its 20 slowest tests (and, for the default tier with an empty
+cache, how many tests took over the slow tier's 20 s); the `.md` beside it is rendered from them. Programs compiled
 in a process a test starts (the command line, notebook kernels, killed children) are in the wall time, not in the
 program counts.
 """
