@@ -7,7 +7,7 @@ time. What a fresh machine pays (issue 52) is the cold run, with an empty compil
     python benchmarks/suite_compile.py --tier slow --cache DIR   # then the slow tier on it, as CI runs (~54 min)
     python benchmarks/suite_compile.py --warm               # with the suite's own cache: what a second run pays
     python benchmarks/suite_compile.py -- tests/agents/test_algorithms.py   # pytest's arguments after `--`
-    python benchmarks/suite_compile.py --per-test tests.jsonl              # also every test's own record
+    python benchmarks/suite_compile.py --per-test tests.jsonl              # also every test's record, appended
 
 The run is `python -m pytest -q -p benchmarks.suite_compile ...` (this module is also the pytest plugin that
 listens to JAX's events, in each xdist worker) with `JAX_COMPILATION_CACHE_DIR` set to a new empty folder unless
@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     caches.add_argument("--warm", action="store_true", help="use the suite's own compile cache instead of an empty one")
     caches.add_argument("--cache", help="use this compile cache folder and keep what the run compiles into it")
     parser.add_argument("--out", help="the results file (default: results/suite_compile_<date>_<machine>.jsonl)")
-    parser.add_argument("--per-test", help="also write every test's record to this JSON-lines file")
+    parser.add_argument("--per-test", help="also append every test's record, with its run's id, to this file")
     parser.add_argument("pytest_args", nargs="*", help="test paths or pytest options (after --)")
     args = parser.parse_args(argv)
 
@@ -161,8 +161,9 @@ def main(argv: list[str] | None = None) -> int:
         status = subprocess.run([*command, *args.pytest_args], cwd=harness.ROOT, env=env).returncode
         wall = time.perf_counter() - start
         records = read_records(env[RECORDS_ENV])
-    if args.per_test:
-        Path(args.per_test).write_text("".join(json.dumps(record) + "\n" for record in records))
+    if args.per_test:  # appended, each record with its run's id, as the harness appends runs to one file
+        with open(args.per_test, "a") as out:
+            out.writelines(json.dumps({"run": recorder.run, **record}) + "\n" for record in records)
     for row in by_file(records):
         recorder.case({"case": row["file"], "status": "ok", **row})
     totals = {f: round(sum(r.get(f, 0) for r in records), 1) for f in FIELDS}
