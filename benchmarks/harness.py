@@ -96,12 +96,14 @@ def machine() -> dict[str, Any]:
 
 def machine_slug(info: dict[str, Any]) -> str:
     """A short file-name part naming the machine: the device on an accelerator (e.g. "nvidia-h100-80gb-hbm3"),
-    else the CPU's maker and family and the usable cores (e.g. "amd-epyc-2c", "intel-xeon-2c")."""
+    else the CPU's maker and family, its widest vector extension where known, and the usable cores (e.g.
+    "amd-epyc-avx2-2c", "intel-xeon-avx-512-2c"). Two 2-core "AMD EPYC" machines, with and without AVX-512,
+    compiled 2x apart (docs/results/benchmarks.md), so their runs go to different files."""
     if info.get("backend") not in ("cpu", "unknown", None):
         name = str(info["device"])
     else:
         words = re.sub(r"\(R\)|\(TM\)|CPU|Processor|@.*", " ", str(info["cpu"])).split()
-        name = " ".join(words[:2]) + f" {info['affinity']}c"
+        name = " ".join([*words[:2], info.get("cpu_vector_isa") or "", f"{info['affinity']}c"])
     return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-") or "machine"
 
 

@@ -63,7 +63,10 @@ def test_a_failing_or_slow_child_gets_a_status_not_numbers(child):
 def test_runs_append_to_one_file_per_day_and_machine(tmp_path, monkeypatch):
     info = {"backend": "cpu", "cpu": "AMD EPYC 7B13 64-Core Processor", "affinity": 2, "device": "cpu"}
     monkeypatch.setattr(harness, "machine", lambda: {**info, "cpus": 2, "memory_gib": 24.0, "python": "3", "jax": "x"})
-    assert harness.machine_slug(info) == "amd-epyc-2c"
+    assert harness.machine_slug(info) == "amd-epyc-2c"  # /proc/cpuinfo named no vector extension
+    # the same model with and without AVX-512 compiles 2x apart: its runs go to another file
+    assert harness.machine_slug({**info, "cpu_vector_isa": "AVX2"}) == "amd-epyc-avx2-2c"
+    assert harness.machine_slug({**info, "cpu_vector_isa": "AVX-512"}) == "amd-epyc-avx-512-2c"
     assert harness.machine_slug({**info, "cpu": "Intel(R) Xeon(R) CPU @ 2.20GHz"}) == "intel-xeon-2c"
     assert harness.machine_slug({"backend": "gpu", "device": "NVIDIA H100 80GB HBM3"}) == "nvidia-h100-80gb-hbm3"
     monkeypatch.setattr(harness, "RESULTS", tmp_path)
