@@ -219,6 +219,9 @@ def run_sb3(case: dict[str, Any]) -> dict[str, Any]:
 def run_child(case: dict[str, Any]) -> None:
     """Run the case in this process and print its measurements (`harness.child_result` adds the peak RSS)."""
     if case["impl"] != "sb3":
+        import amjax
+
+        amjax.use_all_cores()  # before JAX starts: one CPU device per core, as a sweep, or the count _child_env set
         import jax
 
         jax.config.update("jax_enable_compilation_cache", False)  # compile times must be real ones
