@@ -65,7 +65,8 @@ def overhead_figures(active: list[float], vanilla: list[float]) -> dict[str, Any
 def _child_env(case: dict[str, Any]) -> dict[str, str]:
     """What the child's environment adds to this one's (the harness makes the repository importable): its CPU device
     count where it is not one per core. amjax's cases take one per core in the child (`runners.run_child` calls
-    `amjax.use_all_cores()`, which keeps a count set here) unless --cores sets it; the plain reference runs on one."""
+    `amjax.use_all_cores()`, which keeps a count set here) unless --cores sets it; every other case (the plain
+    reference, the interleaved overhead pair) runs on one."""
     if not case["impl"].startswith("amjax"):
         return {"JAX_NUM_CPU_DEVICES": "1"}
     return {"JAX_NUM_CPU_DEVICES": str(case["cores"])} if case["cores"] else {}
