@@ -1,4 +1,5 @@
-"""Command line: `amjax sweep ...`, `demo`, `presets`, `report` and `replicate` (also `python -m train ...`).
+"""Command line: `amjax sweep ...`, `demo`, `presets`, `report`, `replicate`, `pareto` and `prune` (also
+`python -m train ...`).
 
 Bad flags exit with status 2 and a message before anything is written or compiled. A write the disk refuses (no
 space, no permission, read-only) also exits with status 2 and a message; what was finished stays on disk.
@@ -32,7 +33,7 @@ from amjax.sweep.cluster import ClusterError  # noqa: E402
 from amjax.sweep.devices import sweep_devices  # noqa: E402
 from amjax.sweep.grid import MAX_CONFIGS, expand, round_schedule  # noqa: E402
 from amjax.sweep.storage import UnreadableFileError  # noqa: E402
-from train import pareto, replicate, report  # noqa: E402
+from train import pareto, prune, replicate, report  # noqa: E402
 from train.flags import (  # noqa: E402
     add_cluster_arguments,
     add_logging_arguments,
@@ -154,6 +155,7 @@ def build_parser(prog: str = "python -m train") -> argparse.ArgumentParser:
     report.add_parser(commands)
     replicate.add_parser(commands)
     pareto.add_parser(commands)
+    prune.add_parser(commands)
     return parser
 
 
@@ -312,6 +314,8 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return replicate.run(args, parser.error)
     if args.command == "pareto":
         return pareto.run(args, parser.error)
+    if args.command == "prune":
+        return prune.run(args, parser.error)
     if args.command == "presets":
         for name, spec in PRESETS.items():
             runs = len(expand(spec))

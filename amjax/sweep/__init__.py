@@ -2,13 +2,14 @@
 
 Layers, bottom to top: `grid` (the configurations) -> `batches` (compiled groups) -> `storage` (files) ->
 `batch_run` (one batch, first chunk to commit) -> `executors` / `cluster` (what runs the batches) -> `runner`
-(`run_sweep`).
+(`run_sweep`); `prune` (what a finished folder no longer needs).
 """
 
 from amjax.files import FolderBusyError
 from amjax.sweep.cluster import ClusterExecutor
 from amjax.sweep.executors import CompileQueue, Executor, LocalExecutor
 from amjax.sweep.grid import RunConfig, SweepSpec, expand, group_runs
+from amjax.sweep.prune import PruneResult, prune_folder, prune_sweep
 from amjax.sweep.runner import (
     SweepMismatchError,
     SweepResult,
@@ -24,6 +25,7 @@ __all__ = [
     "Executor",
     "FolderBusyError",
     "LocalExecutor",
+    "PruneResult",
     "RunConfig",
     "SweepMismatchError",
     "SweepResult",
@@ -33,5 +35,7 @@ __all__ = [
     "group_runs",
     "load_sweep_policy",
     "policy_path",
+    "prune_folder",
+    "prune_sweep",
     "run_sweep",
 ]

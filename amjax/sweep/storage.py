@@ -8,6 +8,7 @@ Layout of an output folder:
   checkpoints/*.msgpack  train states of each compiled batch (for resuming), no pickle
   policies/<config_id>.msgpack  the best policy of each configuration (`amjax.load_policy`)
   finished/<batch>.json  a batch's commit marker: written last, once everything above is on disk for it
+                       (`amjax prune` later deletes a finished batch's checkpoint and says so in its marker)
   compile_cache/<machine>/ the compiled programs, for a rerun (`amjax.files.use_compile_cache`; the CLI's)
 
 Crash consistency: every file appears through one durable rename (`amjax.files.commit`), and a batch counts as
@@ -128,6 +129,10 @@ def evals_with_rows(results: pd.DataFrame | None, config_ids: Iterable[str], eva
     return done
 
 
+# A commit marker's key saying the batch's final checkpoint was deleted on purpose (absent in older markers: kept).
+CHECKPOINT_PRUNED = "checkpoint_pruned"
+
+
 def marker_path(folder: Path, batch_name: str) -> Path:
     """Where a sweep folder (or a cluster part) keeps the commit marker of batch `batch_name`."""
     return Path(folder) / "finished" / f"{batch_name}.json"
@@ -174,14 +179,17 @@ def marker_files_present(
     folder: Path, marker: dict[str, Any], results: pd.DataFrame | None, rescored: pd.DataFrame | None, policies: bool
 ) -> bool:
     """Whether `folder` has everything a batch's marker vouches for: the rows of every evaluation, the re-scores,
-    the final checkpoint and (with `policies`, which the marker must also say were saved) each configuration's
-    policy."""
+    the final checkpoint (unless the marker says it was pruned: `amjax.sweep.prune_sweep`) and (with `policies`,
+    which the marker must also say were saved) each configuration's policy."""
     config_ids = marker["config_ids"]
     return (
         (marker["policies"] or not policies)
         and evals_with_rows(results, config_ids, marker["eval_every"]) >= marker["evals"]
         and all_rescored(rescored, config_ids)
-        and checkpoint_evals(checkpoint_path(folder, marker["batch"])) == marker["evals"]
+        and (
+            marker.get(CHECKPOINT_PRUNED, False)
+            or checkpoint_evals(checkpoint_path(folder, marker["batch"])) == marker["evals"]
+        )
         and (not policies or all(policy_path(folder, c).exists() for c in config_ids))
     )
 
