@@ -1,5 +1,5 @@
 import sys
 
-from train.cli import main
+from train.cli import interruptible_main
 
-sys.exit(main())
+sys.exit(interruptible_main("python -m train"))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
+import os
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -300,11 +301,16 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m train") -> in
     try:
         return _run(parser, args)
     except OSError as error:  # a full or read-only disk: a message and status 2, never a traceback
-        message = disk_error_message(error, getattr(args, "out", None))
+        message = disk_error_message(error, _output_folder(args))
         if message is None:
             raise
         print(f"{parser.prog}: error: {message}", file=sys.stderr)
         return 2
+
+
+def _output_folder(args: argparse.Namespace) -> str | None:
+    """The folder the command writes in: --out, or prune's FOLDER."""
+    return getattr(args, "out", None) or getattr(args, "folder", None)
 
 
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
@@ -380,6 +386,25 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     return 0
 
 
+def interruptible_main(prog: str) -> int:
+    """`main` for a process of its own (the `amjax` command, `python -m train`): Ctrl-C (SIGINT) stops it with a
+    line saying what is kept and exit status 130, not a traceback. Python sees the signal once the compiled call
+    running in the main thread returns (up to a chunk's time); the finished batches and the checkpointed chunks
+    are on disk, so a rerun of the same command resumes from them. The process then ends at once (`os._exit`):
+    waiting for the runner's threads, still inside XLA, would abort it ("terminate called ...")."""
+    try:
+        return main(prog=prog)
+    except KeyboardInterrupt:
+        print(
+            f"\n{prog}: interrupted. The finished batches and checkpointed chunks are kept on disk; rerun the "
+            "same command to resume",
+            file=sys.stderr,
+        )
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+
+
 def console_main() -> int:
     """The `amjax` console command (`[project.scripts]`)."""
-    return main(prog="amjax")
+    return interruptible_main("amjax")

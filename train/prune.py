@@ -1,16 +1,20 @@
 """`amjax prune FOLDER`: delete the final checkpoints of a sweep's finished batches (train states, replay buffers),
-which nothing reads once a batch is committed, so that the folder can be copied to another machine, archived or
-committed, and resumed there. Rows, re-scores, policies and commit markers stay; unfinished batches keep their
-checkpoints. FOLDER is the --out of `amjax sweep` or of `amjax replicate` (every env's sweep in it).
+so that the folder can be copied to another machine, archived or committed, and resumed there. Rows, re-scores,
+policies and commit markers stay; unfinished batches keep their checkpoints, and so do batches finished without
+policies (a rerun that saves them builds them from the checkpoint). Once pruned, a batch whose policies or rows are
+lost later is trained again. FOLDER is the --out of `amjax sweep` or of `amjax replicate` (every env's sweep in it).
 `--compile-cache` also deletes the compiled programs the commands keep there, which only save a rerun its compiling.
 """
 
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from amjax.files import FolderBusyError
+
+if TYPE_CHECKING:
+    from amjax.sweep.prune import PruneResult
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -27,7 +31,22 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _megabytes(count: int) -> str:
-    return f"{count / 2**20:,.1f} MiB"
+    return f"{count / 1e6:,.1f} MB"
+
+
+def _line(result: PruneResult, verb: str) -> str:
+    """One folder's line: what went (checkpoints, compiled programs, leftover temporary files) and what stayed."""
+    gone = []
+    if result.pruned or not result.cache_bytes:
+        gone.append(f"{len(result.pruned)} finished batches' checkpoints ({_megabytes(result.checkpoint_bytes)})")
+    if result.cache_bytes:
+        gone.append(f"the compile cache ({_megabytes(result.cache_bytes)})")
+    if result.partial_files:
+        gone.append(f"{result.partial_files} temporary files of interrupted writes")
+    line = f"{result.folder}: {verb} " + ", ".join(gone)
+    if result.kept:
+        line += f"; kept {len(result.kept)} checkpoints: " + "; ".join(f"{b} ({why})" for b, why in result.kept.items())
+    return line
 
 
 def run(args: argparse.Namespace, error: Any) -> int:
@@ -40,12 +59,6 @@ def run(args: argparse.Namespace, error: Any) -> int:
         error(str(problem))
     verb = "would delete" if args.dry_run else "deleted"
     for result in done:
-        line = f"{result.folder}: {verb} {len(result.pruned)} finished batches' checkpoints"
-        if not result.pruned and not result.kept and result.freed_bytes:  # a replication's own compile cache
-            line = f"{result.folder}: {verb} the compile cache"
-        line += f" ({_megabytes(result.freed_bytes)})"
-        if result.kept:
-            line += f"; kept {len(result.kept)} that a rerun resumes from: {', '.join(result.kept)}"
-        print(line)
+        print(_line(result, verb))
     print(f"{verb} {_megabytes(sum(r.freed_bytes for r in done))} in all")
     return 0

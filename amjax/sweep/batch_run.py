@@ -7,9 +7,9 @@ Every file is written atomically (`amjax.files.atomic_write`: a temporary file, 
 results before checkpoints: a rerun recomputes at most the work after the last checkpoint (training is
 deterministic), and rows are keyed by (config_id, env_steps) so none is duplicated. A batch is finished when its
 commit marker (`finished/<batch>.json`) is there, written last, after its rows, re-scores, policies and final
-checkpoint; a rerun that finds a marker without all of those files, or the files without a marker, redoes what is
-missing, so a kill at any instant loses no finished work (tests/sweep/test_crash_points.py stops it at every
-rename).
+checkpoint (`amjax.sweep.prune` may delete that checkpoint later, saying so in the marker); a rerun that finds a
+marker without all of those files, or the files without a marker, redoes what is missing, so a kill at any instant
+loses no finished work (tests/sweep/test_crash_points.py stops it at every rename).
 """
 
 from __future__ import annotations

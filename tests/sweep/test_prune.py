@@ -14,8 +14,9 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from amjax.files import PARTIAL_SUFFIX
+from amjax.files import PARTIAL_SUFFIX, FolderBusyError, folder_lock
 from amjax.sweep import SweepSpec, prune_folder, prune_sweep, run_sweep
+from amjax.sweep.prune import MISSING_FILE, NO_POLICIES, NOT_FINISHED
 from amjax.sweep.storage import CHECKPOINT_PRUNED
 from train.cli import main
 
@@ -80,7 +81,8 @@ def test_a_pruned_folder_moves_and_resumes_without_training(finished, tmp_path):
     out = shutil.copytree(finished, tmp_path / "here")
     before = sum(p.stat().st_size for p in (out / "checkpoints").glob("*.msgpack"))
     result = prune_sweep(out)
-    assert len(result.pruned) == 2 and result.kept == () and result.freed_bytes == before > 0
+    assert len(result.pruned) == 2 and result.kept == {} and result.checkpoint_bytes == before > 0
+    assert result.freed_bytes == before and result.cache_bytes == 0
     moved = shutil.copytree(out, tmp_path / "elsewhere")
     _assert_pruned_and_resumable(moved, finished, "moved")
     again = prune_sweep(moved)
@@ -131,7 +133,7 @@ def test_unfinished_batches_keep_their_checkpoints(finished, tmp_path):
     second = json.loads(markers[1].read_text())
     (out / "policies" / f"{second['config_ids'][0]}.msgpack").unlink()
     result = prune_sweep(out)
-    assert result.pruned == () and result.kept == tuple(sorted([markers[0].stem, markers[1].stem]))
+    assert result.pruned == () and result.kept == {markers[0].stem: NOT_FINISHED, markers[1].stem: MISSING_FILE}
     run_sweep(SPEC, out, **OPTIONS)
     assert _files(out, "policies") == _files(finished, "policies")
     assert _files(out, "checkpoints") == _files(finished, "checkpoints")  # committed from them, not retrained
@@ -142,14 +144,18 @@ def test_dry_run_changes_nothing_and_a_replication_folder_prunes_each_env(finish
     root = tmp_path / "replication"
     for env in ("CartPole-v0", "Acrobot-v1"):  # two copies stand for a replication's sweep per env
         shutil.copytree(finished, root / env)
+        (root / env / ".lock").unlink()  # the sweep's, copied with the folder
     (root / "compile_cache" / "cpu-x").mkdir(parents=True)
     (root / "compile_cache" / "cpu-x" / "entry").write_bytes(b"x" * 1000)
     state = {p: _digest(p) for p in (root / "CartPole-v0", root / "Acrobot-v1")}
     assert main(["prune", str(root), "--compile-cache", "--dry-run"]) == 0
-    assert "would delete 2 finished batches' checkpoints" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "would delete 2 finished batches' checkpoints" in printed and "the compile cache (0.0 MB)" in printed
     assert {p: _digest(p) for p in state} == state and (root / "compile_cache").exists()
+    assert not list(root.rglob(".lock"))  # a dry run writes nothing, not even a lock (a read-only copy works)
     done = prune_folder(root, compile_cache=True)
     assert [len(r.pruned) for r in done] == [2, 2, 0] and not (root / "compile_cache").exists()
+    assert done[-1].folder == root and done[-1].cache_bytes == 1000 and done[-1].checkpoint_bytes == 0
     for env in ("CartPole-v0", "Acrobot-v1"):
         _assert_pruned_and_resumable(root / env, finished, env)
 
@@ -170,3 +176,52 @@ def test_bad_folders_and_busy_folders_get_a_clear_error(finished, tmp_path, caps
             main(["prune", str(out)])
     assert exit_info.value.code == 2 and "being written by another running process" in capsys.readouterr().err
     assert _files(out, "checkpoints") == _files(finished, "checkpoints")
+
+
+def test_a_batch_finished_without_policies_keeps_its_checkpoint(tmp_path, capsys):
+    """A sweep run without saving policies: prune keeps its checkpoints and says why, so that a rerun that saves
+    policies builds them from those without training (pruned, it would have to train every batch again)."""
+    out = tmp_path / "no-policies"
+    run_sweep(SPEC, out, save_policies=False, **OPTIONS)
+    checkpoints = _files(out, "checkpoints")
+    assert main(["prune", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "deleted 0 finished batches' checkpoints" in printed and "kept 2 checkpoints" in printed
+    assert printed.count("finished without saving policies") == 2
+    result = prune_sweep(out, dry_run=True)
+    assert result.pruned == () and set(result.kept.values()) == {NO_POLICIES} and len(result.kept) == 2
+    assert _files(out, "checkpoints") == checkpoints
+    run_sweep(SPEC, out, **OPTIONS)
+    assert len(list((out / "policies").glob("*.msgpack"))) == 2
+    assert _files(out, "checkpoints") == checkpoints  # the policies came from the checkpoints, not from training
+    assert len(prune_sweep(out).pruned) == 2
+
+
+def test_leftover_temporary_files_and_a_linked_compile_cache_go(finished, tmp_path):
+    """An interrupted write's temporary file is deleted (a cluster run's parts are left alone), and a compile cache
+    that is a link to another disk loses the link only: its target stays."""
+    out = shutil.copytree(finished, tmp_path / "leftovers")
+    leftovers = [out / f".results.parquet.k9x2{PARTIAL_SUFFIX}", out / "policies" / f".x.msgpack.a1{PARTIAL_SUFFIX}"]
+    theirs = out / "parts" / "batch" / f".results.parquet.b2{PARTIAL_SUFFIX}"
+    for leftover in [*leftovers, theirs]:
+        leftover.parent.mkdir(parents=True, exist_ok=True)
+        leftover.write_bytes(b"half")
+    target = tmp_path / "elsewhere" / "cache"
+    target.mkdir(parents=True)
+    (target / "entry").write_bytes(b"x" * 100)
+    (out / "compile_cache").symlink_to(target)
+    assert prune_sweep(out, dry_run=True).partial_files == 2 and all(p.exists() for p in leftovers)
+    result = prune_sweep(out, compile_cache=True)
+    assert result.partial_files == 2 and not any(p.exists() for p in leftovers) and theirs.exists()
+    assert not (out / "compile_cache").is_symlink() and (target / "entry").exists() and result.cache_bytes == 0
+
+
+def test_a_busy_env_in_a_replication_names_what_was_already_pruned(finished, tmp_path):
+    root = tmp_path / "replication"
+    for env in ("Acrobot-v1", "CartPole-v0"):
+        shutil.copytree(finished, root / env)
+    # CartPole-v0's folder held as a sweep of that env running in another process would hold it
+    with folder_lock(root / "CartPole-v0"), pytest.raises(FolderBusyError, match=r"already pruned: Acrobot-v1\)"):
+        prune_folder(root)
+    assert not list((root / "Acrobot-v1" / "checkpoints").glob("*.msgpack"))
+    assert _files(root / "CartPole-v0", "checkpoints") == _files(finished, "checkpoints")

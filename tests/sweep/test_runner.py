@@ -273,6 +273,28 @@ def test_sigkill_then_rerun_resumes(tmp_path, tiny_sweep_flags):
     assert not list(out.rglob(".*.partial"))  # temporary files of a write the kill cut short are cleared
 
 
+@pytest.mark.slow
+def test_ctrl_c_stops_with_a_message_and_the_rerun_resumes(tmp_path, tiny_sweep_flags):
+    """SIGINT (Ctrl-C) once training has written rows: exit status 130, a line saying what is kept and how to
+    resume, no traceback and no abort from XLA's threads; the same command then completes."""
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "train", "sweep", *tiny_sweep_flags(steps=32768, seeds=2), "--out", str(out)]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}
+    process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 240
+    while not (out / "results.parquet").exists() and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=240)
+    assert process.returncode == 130, stderr
+    assert "interrupted" in stderr and "rerun the same command to resume" in stderr
+    assert "Traceback" not in stderr and "terminate called" not in stderr
+    finished = subprocess.run(command, env=env, capture_output=True, text=True, timeout=400)
+    assert finished.returncode == 0, finished.stderr
+    results = pd.read_parquet(out / "results.parquet")
+    assert len(results) == 2 * 32 and not results.duplicated(["config_id", "env_steps"]).any()
+
+
 def test_failed_write_keeps_the_old_file(tmp_path):
     path = tmp_path / "table.csv"
     path.write_text("old")
