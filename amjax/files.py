@@ -131,14 +131,19 @@ def use_compile_cache(folder: str | Path) -> Path | None:
     return path
 
 
-def remove_partial_writes(folder: Path, recursive: bool = True, skip: Sequence[str] = ()) -> list[Path]:
-    """Delete the temporary files that interrupted `atomic_write` calls left in `folder` (and its subfolders
-    if `recursive`, bar those named in `skip`, which other processes own); returns them. Only safe while no
-    other process writes there (hold `folder_lock`)."""
+def partial_writes(folder: Path, recursive: bool = True, skip: Sequence[str] = ()) -> list[Path]:
+    """The temporary files that interrupted `atomic_write` calls left in `folder` (and its subfolders if
+    `recursive`, bar those named in `skip`), sorted."""
     pattern = f".*{PARTIAL_SUFFIX}"
     folder = Path(folder)
     leftovers = sorted(folder.rglob(pattern) if recursive else folder.glob(pattern)) if folder.is_dir() else []
-    leftovers = [p for p in leftovers if p.relative_to(folder).parts[0] not in skip]
+    return [p for p in leftovers if p.relative_to(folder).parts[0] not in skip]
+
+
+def remove_partial_writes(folder: Path, recursive: bool = True, skip: Sequence[str] = ()) -> list[Path]:
+    """Delete the `partial_writes` in `folder` (subfolders named in `skip` are other processes'); returns them.
+    Only safe while no other process writes there (hold `folder_lock`)."""
+    leftovers = partial_writes(folder, recursive, skip)
     for leftover in leftovers:
         leftover.unlink(missing_ok=True)
     return leftovers

@@ -23,7 +23,7 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from amjax.files import COMPILE_CACHE, PARTIAL_SUFFIX, FolderBusyError, folder_lock, remove_partial_writes
+from amjax.files import COMPILE_CACHE, FolderBusyError, folder_lock, partial_writes, remove_partial_writes
 from amjax.sweep import storage
 from amjax.sweep.cluster import PARTS
 
@@ -110,7 +110,7 @@ def prune_sweep(out: str | Path, *, compile_cache: bool = False, dry_run: bool =
         raise ValueError(f"folder: {out} is not a sweep folder (no metadata.json)")
     with _lock(out, dry_run):
         results, rescored = storage.read_table(out / "results"), storage.read_table(out / "rescored")
-        pruned, kept, freed = [], {}, 0
+        pruned, kept, checkpoint_bytes = [], {}, 0
         for marker_file in sorted((out / "finished").glob("*.json")):
             marker = storage.read_marker(out, marker_file.stem)
             if marker is None:
@@ -125,7 +125,7 @@ def prune_sweep(out: str | Path, *, compile_cache: bool = False, dry_run: bool =
                 kept[marker["batch"]] = NO_POLICIES
                 continue
             pruned.append(marker["batch"])
-            freed += _size(checkpoint)
+            checkpoint_bytes += _size(checkpoint)
             if dry_run:
                 continue
             if not marker.get(storage.CHECKPOINT_PRUNED):
@@ -135,12 +135,9 @@ def prune_sweep(out: str | Path, *, compile_cache: bool = False, dry_run: bool =
             if checkpoint.stem not in pruned and checkpoint.stem not in kept:
                 kept[checkpoint.stem] = NOT_FINISHED
         kept = {batch: kept[batch] for batch in sorted(kept) if storage.checkpoint_path(out, batch).exists()}
-        if dry_run:
-            partial = [p for p in out.rglob(f".*{PARTIAL_SUFFIX}") if p.relative_to(out).parts[0] != PARTS]
-        else:
-            partial = remove_partial_writes(out, skip=(PARTS,))
+        partial = (partial_writes if dry_run else remove_partial_writes)(out, skip=(PARTS,))
         cache = _delete_compile_cache(out, dry_run) if compile_cache else 0
-    return PruneResult(out, tuple(pruned), kept, freed, cache, len(partial))
+    return PruneResult(out, tuple(pruned), kept, checkpoint_bytes, cache, len(partial))
 
 
 def prune_folder(folder: str | Path, *, compile_cache: bool = False, dry_run: bool = False) -> list[PruneResult]:
