@@ -9,11 +9,13 @@ against dqn, pqn-rnn against drqn).
 
     python benchmarks/pqn_speed.py                 # benchmarks/results/pqn_speed_<date>_<machine>.jsonl / .md
     python benchmarks/pqn_speed.py --configs 4 --steps 8192 --envs CartPole-v0   # a smoke run
+    python benchmarks/pqn_speed.py --envs CartPole-v0 --agents dqn pqn --set pqn.update_epochs=2   # an ablation
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import sys
 from pathlib import Path
@@ -29,8 +31,11 @@ AGENTS = ("dqn", "pqn", "drqn", "pqn-rnn")
 COUNTERPART = {"pqn": "dqn", "pqn-rnn": "drqn"}  # the speed ratio's denominator
 
 
-def run_case(env_id: str, agent: str, configs: int, steps: int, eval_every: int, devices: int) -> dict[str, Any]:
-    """Compile and time one case in this process, its configurations split over `devices` CPU devices."""
+def run_case(
+    env_id: str, agent: str, configs: int, steps: int, eval_every: int, devices: int, overrides: dict[str, Any]
+) -> dict[str, Any]:
+    """Compile and time one case in this process, its configurations split over `devices` CPU devices, with the
+    config fields `overrides` set on top of the env's presets."""
     import jax
 
     jax.config.update("jax_num_cpu_devices", devices)  # before JAX starts (this child's first JAX call)
@@ -40,12 +45,42 @@ def run_case(env_id: str, agent: str, configs: int, steps: int, eval_every: int,
     from amjax.agents.config import nearest_schedule
 
     algo = ALGORITHMS[agent]
-    items = [config_for(env_id, agent, cost=COSTS[i % len(COSTS)]) for i in range(configs)]
+    fields = {name: tuple(v) if isinstance(v, list) else v for name, v in overrides.items()}  # JSON made tuples lists
+    items = [config_for(env_id, agent, cost=COSTS[i % len(COSTS)]).replace(**fields) for i in range(configs)]
     total, every = nearest_schedule(steps, eval_every, items[0].steps_per_update())
     items = [c.replace(eval_every=every, total_timesteps=total).validate() for c in items]
     keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
     timing = harness.time_training_batch(algo, items, keys)  # on the `devices` CPU devices set above
-    return {"env": env_id, "agent": agent, "configs": configs, "devices": devices, **timing}
+    return {"env": env_id, "agent": agent, "overrides": overrides, "configs": configs, "devices": devices, **timing}
+
+
+def parse_overrides(items: list[str], agents: list[str]) -> dict[str, dict[str, Any]]:
+    """`--set AGENT.FIELD=VALUE` items -> {agent: {field: value}}; ValueError naming the item if the agent is not
+    benchmarked or has no such config field. A value is a Python literal, else a bare word."""
+    import dataclasses
+
+    from amjax.agents import ALGORITHMS
+
+    overrides: dict[str, dict[str, Any]] = {agent: {} for agent in agents}
+    for item in items:
+        name, sep, text = item.partition("=")
+        agent, dot, field = name.rpartition(".")
+        if not (sep and dot) or agent not in overrides:
+            raise ValueError(f"got {item!r}; expected AGENT.FIELD=VALUE with AGENT one of {', '.join(agents)}")
+        allowed = [f.name for f in dataclasses.fields(ALGORITHMS[agent].config_type)]
+        if field not in allowed:
+            raise ValueError(f"got {item!r}: {agent} has no field {field!r}; allowed: {', '.join(allowed)}")
+        try:
+            overrides[agent][field] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            overrides[agent][field] = text  # a bare word, e.g. tanh
+    return overrides
+
+
+def label(result: dict[str, Any]) -> str:
+    """A case's agent and the fields it set, e.g. "pqn (update_epochs=2)"."""
+    fields = ", ".join(f"{name}={value}" for name, value in result.get("overrides", {}).items())
+    return f"{result['agent']} ({fields})" if fields else result["agent"]
 
 
 def render(runs: list[dict[str, Any]]) -> str:
@@ -53,7 +88,7 @@ def render(runs: list[dict[str, Any]]) -> str:
     parts = []
     for run in runs:
         settings, results = run["settings"], [r for r in run["cases"] if r["status"] == "ok"]
-        speed = {(r["env"], r["agent"]): r["env_steps_per_s"] for r in results}
+        speed = {(r["env"], r["agent"]): r["env_steps_per_s"] for r in results if not r.get("overrides")}
 
         def ratio(r: dict[str, Any], speed: dict[tuple[str, str], int] = speed) -> str:
             base = speed.get((r["env"], COUNTERPART.get(r["agent"], "")))
@@ -70,7 +105,7 @@ def render(runs: list[dict[str, Any]]) -> str:
                 results,
                 [
                     ("env", lambda r: r["env"]),
-                    ("agent", lambda r: r["agent"]),
+                    ("agent", label),
                     ("steps / config", lambda r: r["steps_per_config"]),
                     ("compile (s)", lambda r: r["compile_s"]),
                     ("run (s)", lambda r: r["run_s"]),
@@ -97,6 +132,14 @@ def main(argv: list[str] | None = None) -> int:
         help="results file to append to (default: benchmarks/results/pqn_speed_<date>_<machine>.jsonl; the "
         "markdown table is written beside it)",
     )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="AGENT.FIELD=VALUE",
+        help="a config field of one agent's cases on top of the env's presets (repeatable), for ablations; the ratio "
+        "is against the counterpart's unchanged cases of the same run",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:  # before anything starts JAX: the child sets its device count first
@@ -119,6 +162,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--devices: {args.devices}; allowed values: 1 to {usable_cores()} (usable cores)")
     if args.configs % args.devices:
         parser.error(f"--configs: {args.configs} must be a multiple of --devices ({args.devices})")
+    try:
+        overrides = parse_overrides(args.set, args.agents)
+    except ValueError as error:
+        parser.error(f"--set: {error}")
 
     cases = [
         {
@@ -128,6 +175,7 @@ def main(argv: list[str] | None = None) -> int:
             "steps": args.steps,
             "eval_every": args.eval_every,
             "devices": args.devices,
+            "overrides": overrides[agent],
         }
         for env_id in args.envs
         for agent in args.agents

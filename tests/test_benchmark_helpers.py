@@ -142,3 +142,32 @@ def test_replicate_time_says_what_a_timed_out_case_measured():
     assert "40-configuration batch finished (compile 61.0 s, 250.0 k train steps/s, projected 10.0 m)" in text
     assert "10-configuration batch had compiled (init 20.5 s with its compile, training chunk 55.2 s)" in text
     assert replicate_time._partial({"status": "timeout after 235 s"}) == ""
+
+
+def test_pqn_speed_overrides_parse_and_label_their_cases():
+    from benchmarks import pqn_speed
+
+    overrides = pqn_speed.parse_overrides(
+        ["pqn.update_epochs=2", "pqn.hidden=(32,32)", "pqn.activation=tanh"], ["dqn", "pqn"]
+    )
+    assert overrides == {"dqn": {}, "pqn": {"update_epochs": 2, "hidden": (32, 32), "activation": "tanh"}}
+    with pytest.raises(ValueError, match="AGENT one of dqn, pqn"):
+        pqn_speed.parse_overrides(["drqn.update_epochs=2"], ["dqn", "pqn"])
+    with pytest.raises(ValueError, match="pqn has no field 'epochs'.*update_epochs"):
+        pqn_speed.parse_overrides(["pqn.epochs=2"], ["pqn"])
+    case = {"env": "CartPole-v0", "status": "ok", "steps_per_config": 8192, "compile_s": 1.0, "run_s": 1.0}
+    case |= {"env_steps_per_s": 100, "peak_rss_mib": 500}
+    results = [
+        {**case, "agent": "dqn", "overrides": {}},
+        {**case, "agent": "pqn", "overrides": {"update_epochs": 2}, "env_steps_per_s": 300},
+    ]
+    machine = {"cpu": "AMD EPYC", "affinity": 1, "memory_gib": 23.5, "backend": "cpu", "jax": "0.10.2"}
+    run = {
+        "date": "2026-12-03T13:05",
+        "commit": "abc1234",
+        "command": "python benchmarks/pqn_speed.py",
+        "load_start": 0.5,
+    }
+    run |= {"load_end": 0.7, "machine": machine, "settings": {"configs": 2, "devices": 1}, "cases": results}
+    table = pqn_speed.render([run])
+    assert "| pqn (update_epochs=2) |" in table and "3.0x" in table  # against the unchanged dqn of the same run
