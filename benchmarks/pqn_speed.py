@@ -45,7 +45,7 @@ def run_case(
     from amjax.agents.config import nearest_schedule
 
     algo = ALGORITHMS[agent]
-    fields = {name: tuple(v) if isinstance(v, list) else v for name, v in overrides.items()}  # JSON made tuples lists
+    fields = {name: as_tuples(value) for name, value in overrides.items()}  # the child's JSON made tuples lists
     items = [config_for(env_id, agent, cost=COSTS[i % len(COSTS)]).replace(**fields) for i in range(configs)]
     total, every = nearest_schedule(steps, eval_every, items[0].steps_per_update())
     items = [c.replace(eval_every=every, total_timesteps=total).validate() for c in items]
@@ -54,9 +54,36 @@ def run_case(
     return {"env": env_id, "agent": agent, "overrides": overrides, "configs": configs, "devices": devices, **timing}
 
 
+# Fields the script itself sets (from --steps and --eval-every), which `--set` may not change.
+SCRIPT_FIELDS = ("total_timesteps", "eval_every")
+
+
+def as_tuples(value: Any) -> Any:
+    """`value` with every list turned back into a tuple, at any depth (a results file's JSON writes tuples as
+    lists, and config fields such as `hidden` take tuples)."""
+    return tuple(as_tuples(v) for v in value) if isinstance(value, (list, tuple)) else value
+
+
+def parse_value(text: str) -> Any:
+    """One `--set` value: a Python literal, `true` / `false` in any case, else a bare word (e.g. tanh).
+    ValueError for an empty value or one a results file cannot record (JSON: no sets or complex numbers)."""
+    if not text.strip():
+        raise ValueError("an empty value")
+    try:
+        value = ast.literal_eval(text)
+    except (ValueError, SyntaxError, TypeError):
+        value = {"true": True, "false": False}.get(text.strip().lower(), text)
+    try:
+        json.dumps(value)
+    except TypeError:
+        raise ValueError(f"{text!r} is not a number, string, boolean or tuple of them") from None
+    return value
+
+
 def parse_overrides(items: list[str], agents: list[str]) -> dict[str, dict[str, Any]]:
-    """`--set AGENT.FIELD=VALUE` items -> {agent: {field: value}}; ValueError naming the item if the agent is not
-    benchmarked or has no such config field. A value is a Python literal, else a bare word."""
+    """`--set AGENT.FIELD=VALUE` items -> {agent: {field: value}}. ValueError naming the item if the agent is not
+    benchmarked, has no such config field, the field is one the script sets, it is given twice, or its value does
+    not parse (`parse_value`). The values are checked against each env's config in `main`."""
     import dataclasses
 
     from amjax.agents import ALGORITHMS
@@ -67,19 +94,23 @@ def parse_overrides(items: list[str], agents: list[str]) -> dict[str, dict[str, 
         agent, dot, field = name.rpartition(".")
         if not (sep and dot) or agent not in overrides:
             raise ValueError(f"got {item!r}; expected AGENT.FIELD=VALUE with AGENT one of {', '.join(agents)}")
-        allowed = [f.name for f in dataclasses.fields(ALGORITHMS[agent].config_type)]
+        allowed = [f.name for f in dataclasses.fields(ALGORITHMS[agent].config_type) if f.name not in SCRIPT_FIELDS]
+        if field in SCRIPT_FIELDS:
+            raise ValueError(f"got {item!r}: {field} is set by --steps and --eval-every")
         if field not in allowed:
             raise ValueError(f"got {item!r}: {agent} has no field {field!r}; allowed: {', '.join(allowed)}")
+        if field in overrides[agent]:
+            raise ValueError(f"got {item!r}: {agent}.{field} is set twice")
         try:
-            overrides[agent][field] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            overrides[agent][field] = text  # a bare word, e.g. tanh
+            overrides[agent][field] = parse_value(text)
+        except ValueError as error:
+            raise ValueError(f"got {item!r}: {error}") from None
     return overrides
 
 
 def label(result: dict[str, Any]) -> str:
     """A case's agent and the fields it set, e.g. "pqn (update_epochs=2)"."""
-    fields = ", ".join(f"{name}={value}" for name, value in result.get("overrides", {}).items())
+    fields = ", ".join(f"{name}={as_tuples(value)}" for name, value in result.get("overrides", {}).items())
     return f"{result['agent']} ({fields})" if fields else result["agent"]
 
 
@@ -114,7 +145,7 @@ def render(runs: list[dict[str, Any]]) -> str:
                     ("peak RSS (MiB)", lambda r: r["peak_rss_mib"]),
                 ],
             )
-            + "".join(f"\n{r['env_id']} {r['agent']}: {r['status']}\n" for r in run["cases"] if r["status"] != "ok")
+            + "".join(f"\n{r['env_id']} {label(r)}: {r['status']}\n" for r in run["cases"] if r["status"] != "ok")
         )
     return "\n".join(parts)
 
@@ -166,6 +197,14 @@ def main(argv: list[str] | None = None) -> int:
         overrides = parse_overrides(args.set, args.agents)
     except ValueError as error:
         parser.error(f"--set: {error}")
+    from amjax.agents import config_for
+
+    for env_id in args.envs:  # a value the config refuses stops here, before any case runs
+        for agent, fields in overrides.items():
+            try:
+                config_for(env_id, agent).replace(**fields).validate()
+            except (ValueError, TypeError) as error:
+                parser.error(f"--set: {agent} on {env_id}: {error}")
 
     cases = [
         {

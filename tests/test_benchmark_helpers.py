@@ -147,27 +147,56 @@ def test_replicate_time_says_what_a_timed_out_case_measured():
 def test_pqn_speed_overrides_parse_and_label_their_cases():
     from benchmarks import pqn_speed
 
-    overrides = pqn_speed.parse_overrides(
-        ["pqn.update_epochs=2", "pqn.hidden=(32,32)", "pqn.activation=tanh"], ["dqn", "pqn"]
-    )
-    assert overrides == {"dqn": {}, "pqn": {"update_epochs": 2, "hidden": (32, 32), "activation": "tanh"}}
-    with pytest.raises(ValueError, match="AGENT one of dqn, pqn"):
-        pqn_speed.parse_overrides(["drqn.update_epochs=2"], ["dqn", "pqn"])
-    with pytest.raises(ValueError, match="pqn has no field 'epochs'.*update_epochs"):
-        pqn_speed.parse_overrides(["pqn.epochs=2"], ["pqn"])
+    items = ["pqn.update_epochs=2", "pqn.hidden=(32,32)", "pqn.activation=tanh", "pqn.layer_norm=FALSE"]
+    overrides = pqn_speed.parse_overrides(items, ["dqn", "pqn"])
+    want = {"update_epochs": 2, "hidden": (32, 32), "activation": "tanh", "layer_norm": False}
+    assert overrides == {"dqn": {}, "pqn": want}
+    for item, message in [
+        ("drqn.update_epochs=2", "AGENT one of dqn, pqn"),
+        ("pqn.epochs=2", "pqn has no field 'epochs'.*update_epochs"),
+        ("pqn.eval_every=2048", "set by --steps and --eval-every"),
+        ("pqn.learning_rate=", "an empty value"),
+        ("pqn.learning_rate={1, 2}", "not a number, string, boolean or tuple"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            pqn_speed.parse_overrides([item], ["dqn", "pqn"])
+    with pytest.raises(ValueError, match="pqn.gamma is set twice"):
+        pqn_speed.parse_overrides(["pqn.gamma=0.9", "pqn.gamma=0.95"], ["pqn"])
+
     case = {"env": "CartPole-v0", "status": "ok", "steps_per_config": 8192, "compile_s": 1.0, "run_s": 1.0}
     case |= {"env_steps_per_s": 100, "peak_rss_mib": 500}
-    results = [
-        {**case, "agent": "dqn", "overrides": {}},
-        {**case, "agent": "pqn", "overrides": {"update_epochs": 2}, "env_steps_per_s": 300},
-    ]
+    changed = {"update_epochs": 2, "hidden": [32, 32]}  # as a results file holds it (JSON)
+    results = [{**case, "agent": "dqn", "overrides": {}}, {**case, "agent": "pqn", "overrides": changed}]
+    results[1]["env_steps_per_s"] = 300
     machine = {"cpu": "AMD EPYC", "affinity": 1, "memory_gib": 23.5, "backend": "cpu", "jax": "0.10.2"}
-    run = {
-        "date": "2026-12-03T13:05",
-        "commit": "abc1234",
-        "command": "python benchmarks/pqn_speed.py",
-        "load_start": 0.5,
-    }
-    run |= {"load_end": 0.7, "machine": machine, "settings": {"configs": 2, "devices": 1}, "cases": results}
-    table = pqn_speed.render([run])
-    assert "| pqn (update_epochs=2) |" in table and "3.0x" in table  # against the unchanged dqn of the same run
+    run = {"date": "2026-12-03T13:05", "commit": "abc1234", "command": "python benchmarks/pqn_speed.py"}
+    run |= {"load_start": 0.5, "load_end": 0.7, "machine": machine, "settings": {"configs": 2, "devices": 1}}
+    table = pqn_speed.render([run | {"cases": results}])
+    # Against the unchanged dqn of the same run; an older file's cases have no "overrides" at all.
+    assert "| pqn (update_epochs=2, hidden=(32, 32)) |" in table and "3.0x" in table
+    older = [{k: v for k, v in r.items() if k != "overrides"} for r in results]
+    assert "| pqn |" in pqn_speed.render([run | {"cases": older}])
+
+
+def test_pqn_speed_refuses_a_value_the_config_refuses_before_any_case_runs(capsys):
+    from benchmarks import pqn_speed
+
+    with pytest.raises(SystemExit) as exit_info:
+        pqn_speed.main(["--envs", "CartPole-v0", "--agents", "pqn", "--set", "pqn.update_epochs=0"])
+    assert exit_info.value.code == 2
+    assert "--set: pqn on CartPole-v0:" in capsys.readouterr().err
+
+
+def test_layer_norm_grad_times_a_layer_norm_equal_to_flax():
+    """The hand-written LayerNorm that benchmarks/layer_norm_grad.py times is flax's, values and gradients."""
+    import flax.linen as nn
+    import jax
+    import numpy as np
+
+    from benchmarks import layer_norm_grad
+
+    assert layer_norm_grad.check_gradients() < 1e-5
+    x = jax.random.normal(jax.random.PRNGKey(3), (2, 7, 64)) * 2 - 1  # a leading batch axis as under vmap
+    params = nn.LayerNorm().init(jax.random.PRNGKey(0), x)
+    mine = layer_norm_grad.HandWrittenLayerNorm().apply(params, x)
+    np.testing.assert_allclose(mine, nn.LayerNorm().apply(params, x), atol=1e-5)
