@@ -37,13 +37,13 @@ def _megabytes(count: int) -> str:
 def _line(result: PruneResult, verb: str) -> str:
     """One folder's line: what went (checkpoints, compiled programs, leftover temporary files) and what stayed."""
     gone = []
-    if result.pruned or not result.cache_bytes:
+    if result.pruned:
         gone.append(f"{len(result.pruned)} finished batches' checkpoints ({_megabytes(result.checkpoint_bytes)})")
     if result.cache_bytes:
         gone.append(f"the compile cache ({_megabytes(result.cache_bytes)})")
     if result.partial_files:
         gone.append(f"{result.partial_files} temporary files of interrupted writes")
-    line = f"{result.folder}: {verb} " + ", ".join(gone)
+    line = f"{result.folder}: {verb} " + (", ".join(gone) or "nothing")
     if result.kept:
         line += f"; kept {len(result.kept)} checkpoints: " + "; ".join(f"{b} ({why})" for b, why in result.kept.items())
     return line
