@@ -15,7 +15,6 @@ against dqn, pqn-rnn against drqn).
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import sys
 from pathlib import Path
@@ -41,17 +40,27 @@ def run_case(
     jax.config.update("jax_num_cpu_devices", devices)  # before JAX starts (this child's first JAX call)
     import jax.numpy as jnp
 
-    from amjax.agents import ALGORITHMS, config_for
+    from amjax.agents import ALGORITHMS
+
+    items = case_configs(env_id, agent, configs, steps, eval_every, overrides)
+    keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
+    timing = harness.time_training_batch(ALGORITHMS[agent], items, keys)  # on the `devices` CPU devices set above
+    return {"env": env_id, "agent": agent, "overrides": overrides, "configs": configs, "devices": devices, **timing}
+
+
+def case_configs(
+    env_id: str, agent: str, configs: int, steps: int, eval_every: int, overrides: dict[str, Any]
+) -> list[Any]:
+    """One case's validated configs: costs 0.1 / 0.2 / 0.3 in turn, the env's presets with the fields `overrides`
+    on top, the schedule nearest to `steps` and `eval_every`. ValueError or TypeError for a value the config
+    refuses (`main` builds them once before any case runs)."""
+    from amjax.agents import config_for
     from amjax.agents.config import nearest_schedule
 
-    algo = ALGORITHMS[agent]
     fields = {name: as_tuples(value) for name, value in overrides.items()}  # the child's JSON made tuples lists
     items = [config_for(env_id, agent, cost=COSTS[i % len(COSTS)]).replace(**fields) for i in range(configs)]
     total, every = nearest_schedule(steps, eval_every, items[0].steps_per_update())
-    items = [c.replace(eval_every=every, total_timesteps=total).validate() for c in items]
-    keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
-    timing = harness.time_training_batch(algo, items, keys)  # on the `devices` CPU devices set above
-    return {"env": env_id, "agent": agent, "overrides": overrides, "configs": configs, "devices": devices, **timing}
+    return [c.replace(eval_every=every, total_timesteps=total).validate() for c in items]
 
 
 # Fields the script itself sets (from --steps and --eval-every), which `--set` may not change.
@@ -65,15 +74,14 @@ def as_tuples(value: Any) -> Any:
 
 
 def parse_value(text: str) -> Any:
-    """One `--set` value: a Python literal, `true` / `false` in any case, else a bare word (e.g. tanh).
-    ValueError for an empty value or one a results file cannot record (JSON: no sets or complex numbers)."""
+    """One `--set` value, in the syntax of `amjax sweep --set` (`train.flags.parse_set_value`). ValueError for an
+    empty value or one a results file cannot record (JSON: no sets or complex numbers)."""
+    from train.flags import parse_set_value
+
     if not text.strip():
         raise ValueError("an empty value")
     try:
-        value = ast.literal_eval(text)
-    except (ValueError, SyntaxError, TypeError):
-        value = {"true": True, "false": False}.get(text.strip().lower(), text)
-    try:
+        value = parse_set_value(text)
         json.dumps(value)
     except TypeError:
         raise ValueError(f"{text!r} is not a number, string, boolean or tuple of them") from None
@@ -197,12 +205,10 @@ def main(argv: list[str] | None = None) -> int:
         overrides = parse_overrides(args.set, args.agents)
     except ValueError as error:
         parser.error(f"--set: {error}")
-    from amjax.agents import config_for
-
     for env_id in args.envs:  # a value the config refuses stops here, before any case runs
-        for agent, fields in overrides.items():
+        for agent in args.agents:
             try:
-                config_for(env_id, agent).replace(**fields).validate()
+                case_configs(env_id, agent, args.configs, args.steps, args.eval_every, overrides[agent])
             except (ValueError, TypeError) as error:
                 parser.error(f"--set: {agent} on {env_id}: {error}")
 

@@ -8,7 +8,6 @@ space, no permission, read-only) also exits with status 2 and a message; what wa
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
 import os
 import sys
@@ -42,21 +41,9 @@ from train.flags import (  # noqa: E402
     disk_error_message,
     executor_for,
     make_loggers,
+    parse_set_value,
 )
 from train.presets import PRESETS  # noqa: E402
-
-
-def _parse_value(text: str) -> Any:
-    """One `--set` value: a Python literal; `true` / `false` in any case as booleans (as YAML and JSON write
-    them); else a bare word, or a tuple of values where commas separate bare words (relu,tanh)."""
-    try:
-        return ast.literal_eval(text)
-    except (ValueError, SyntaxError):
-        if "," in text:  # bare words among the values, e.g. relu,tanh
-            return tuple(_parse_value(part) for part in text.split(","))
-        if text.strip().lower() in ("true", "false"):
-            return text.strip().lower() == "true"
-        return text  # a bare word, e.g. relu
 
 
 def _sequence_fields() -> set[str]:
@@ -83,7 +70,7 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
         name, sep, text = item.partition("=")
         if not sep or not name:
             raise ValueError(f"--set: expected NAME=VALUE[,VALUE...], got {item!r}")
-        value = _parse_value(text)
+        value = parse_set_value(text)
         if name.rpartition(".")[2] == "instruments":  # one value is "default" or a tuple of index tuples
             if isinstance(value, tuple) and value and all(_is_instruments(v) for v in value):
                 value = list(value)

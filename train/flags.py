@@ -1,9 +1,11 @@
-"""Flags that several commands share (sweep, replicate): optional per-configuration logging, cluster targets;
-and the message for a write the disk refuses, which every command gives the same way."""
+"""Flags that several commands share (sweep, replicate): optional per-configuration logging, cluster targets, the
+syntax of a `--set` value (also `benchmarks/pqn_speed.py`'s); and the message for a write the disk refuses, which
+every command gives the same way."""
 
 from __future__ import annotations
 
 import argparse
+import ast
 import errno
 import json
 from pathlib import Path
@@ -11,6 +13,19 @@ from typing import Any
 
 from amjax.sweep.cluster import check_engine, check_parameters, parse_cluster
 from amjax.sweep.loggers import TensorBoardLogger, WandbLogger
+
+
+def parse_set_value(text: str) -> Any:
+    """One `--set` value: a Python literal; `true` / `false` in any case as booleans (as YAML and JSON write
+    them); else a bare word, or a tuple of values where commas separate bare words (relu,tanh)."""
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        if "," in text:  # bare words among the values, e.g. relu,tanh
+            return tuple(parse_set_value(part) for part in text.split(","))
+        if text.strip().lower() in ("true", "false"):
+            return text.strip().lower() == "true"
+        return text  # a bare word, e.g. relu
 
 
 def add_logging_arguments(parser: argparse.ArgumentParser) -> None:
