@@ -5,9 +5,10 @@ Times the gradient step of PQN's CartPole-v0 network (the 64x64 preset: two Dens
 LayerNorm and relu, then a Dense layer of 4 Q-values) on minibatches of 128 rows for 15 configurations under vmap
 (one device's share of the grid's 30), as a scanned loop of `--steps` steps on one CPU device, with:
 
-- flax's `nn.LayerNorm` (what amjax runs);
-- a LayerNorm with a hand-written gradient (`jax.custom_vjp`: two-pass statistics, and the input's gradient from
-  two means, rstd * (g - mean(g) - xhat * mean(g * xhat))); checked here against flax's to float rounding;
+- flax's `nn.LayerNorm` (what amjax ran before 2026-12-07);
+- amjax's `networks.LayerNorm`, with a hand-written gradient (`jax.custom_vjp`: two-pass statistics, and the
+  input's gradient from two means, rstd * (g - mean(g) - xhat * mean(g * xhat))); checked here against flax's to
+  float rounding;
 - no LayerNorm.
 
 It records the compile time and microseconds per step of each: the best of `--repeats` timed runs after a
@@ -35,44 +36,12 @@ import numpy as np
 
 if not __package__:  # run as a file: the repository importable, for `benchmarks.harness`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from amjax.agents.networks import LayerNorm  # noqa: E402
 from benchmarks import harness  # noqa: E402
 
-EPSILON = 1e-6  # flax's nn.LayerNorm default
 CONFIGS, ROWS, OBS, ACTIONS, HIDDEN = 15, 128, 5, 4, (64, 64)  # CartPole-v0 with the flag: 5 inputs, 2 x 2 actions
 
-
-@jax.custom_vjp
-def layer_norm(x: jax.Array, scale: jax.Array, bias: jax.Array) -> jax.Array:
-    return _layer_norm_fwd(x, scale, bias)[0]
-
-
-def _layer_norm_fwd(x, scale, bias):
-    centred = x - x.mean(-1, keepdims=True)
-    rstd = jax.lax.rsqrt(jnp.square(centred).mean(-1, keepdims=True) + EPSILON)
-    normed = centred * rstd
-    return normed * scale + bias, (normed, rstd, scale)
-
-
-def _layer_norm_bwd(residuals, grad):
-    normed, rstd, scale = residuals
-    g = grad * scale
-    dx = rstd * (g - g.mean(-1, keepdims=True) - normed * (g * normed).mean(-1, keepdims=True))
-    rows = tuple(range(grad.ndim - 1))
-    return dx, (grad * normed).sum(rows), grad.sum(rows)
-
-
-layer_norm.defvjp(_layer_norm_fwd, _layer_norm_bwd)
-
-
-class HandWrittenLayerNorm(nn.Module):
-    @nn.compact
-    def __call__(self, x: jax.Array) -> jax.Array:
-        scale = self.param("scale", nn.initializers.ones, (x.shape[-1],))
-        bias = self.param("bias", nn.initializers.zeros, (x.shape[-1],))
-        return layer_norm(x, scale, bias)
-
-
-NORMS = {"flax nn.LayerNorm": nn.LayerNorm, "hand-written gradient": HandWrittenLayerNorm, "none": None}
+NORMS = {"flax nn.LayerNorm": nn.LayerNorm, "hand-written gradient (amjax)": LayerNorm, "none": None}
 
 
 class QNetwork(nn.Module):
@@ -87,18 +56,18 @@ class QNetwork(nn.Module):
 
 
 def check_gradients() -> float:
-    """The largest difference between the hand-written LayerNorm's gradients and flax's, on random inputs."""
+    """The largest difference between amjax's LayerNorm's gradients and flax's, on random inputs."""
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     x = 3 * jax.random.normal(keys[0], (32, HIDDEN[0])) + 1
     scale, bias = jax.random.normal(keys[1], (HIDDEN[0],)), jax.random.normal(keys[2], (HIDDEN[0],))
 
-    def flax_norm(x, scale, bias):
-        return nn.LayerNorm().apply({"params": {"scale": scale, "bias": bias}}, x)
-
     def grads(norm):
-        return jax.grad(lambda *args: jnp.sin(norm(*args)).sum(), argnums=(0, 1, 2))(x, scale, bias)
+        def loss(x, scale, bias):
+            return jnp.sin(norm().apply({"params": {"scale": scale, "bias": bias}}, x)).sum()
 
-    return max(float(jnp.abs(a - b).max()) for a, b in zip(grads(flax_norm), grads(layer_norm), strict=True))
+        return jax.grad(loss, argnums=(0, 1, 2))(x, scale, bias)
+
+    return max(float(jnp.abs(a - b).max()) for a, b in zip(grads(nn.LayerNorm), grads(LayerNorm), strict=True))
 
 
 def compile_steps(norm: type[nn.Module] | None, steps: int) -> tuple[float, Callable[[], Any]]:
@@ -126,7 +95,7 @@ def run_case(steps: int, repeats: int) -> dict[str, Any]:
     """In the child: the gradients checked, then every variant compiled and timed in turn."""
     difference = check_gradients()
     if difference > 1e-4:
-        raise SystemExit(f"the hand-written LayerNorm's gradients differ from flax's by {difference:.2e}")
+        raise SystemExit(f"amjax's LayerNorm's gradients differ from flax's by {difference:.2e}")
     programs = {name: compile_steps(norm, steps) for name, norm in NORMS.items()}
     best = dict.fromkeys(NORMS, np.inf)
     for _ in range(repeats):  # the variants in turn, so a noisy spell on the machine touches them all

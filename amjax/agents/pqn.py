@@ -3,9 +3,10 @@ scanned update: no replay buffer and no target network. LayerNorm in the network
 parallel envs keep the bootstrapped targets stable.
 
 One `update`: roll out `num_steps` epsilon-greedy steps of `num_envs` envs -> Q(lambda) targets from the network's
-own greedy values of the pre-reset next observations (one batched pass, before learning) -> `update_epochs` epochs
-of `num_minibatches` squared-error minibatch steps on Q(s, a). A terminated episode does not bootstrap; a truncated
-one bootstraps from its pre-reset observation; no target runs across an episode's end.
+own greedy values of the pre-reset next observations (kept from acting, where the next observation is the one acted
+on next; `q_learning.bootstrap_values`) -> `update_epochs` epochs of `num_minibatches` squared-error minibatch steps
+on Q(s, a). A terminated episode does not bootstrap; a truncated one bootstraps from its pre-reset observation; no
+target runs across an episode's end.
 
 Differences from the reference (github.com/mttga/purejaxql, `pqn_gymnax.py`): Adam (the agents' shared optimiser)
 where the reference uses RAdam; truncation bootstraps where the reference treats it as termination; the defaults are
@@ -31,7 +32,7 @@ from amjax.agents.optim import (
     minibatch_epochs,
     minibatch_step,
 )
-from amjax.agents.q_learning import epsilon, epsilon_greedy_act, greedy, q_lambda_targets
+from amjax.agents.q_learning import bootstrap_values, epsilon, epsilon_greedy_act, greedy, q_lambda_targets
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
@@ -127,13 +128,17 @@ def update(config: PQNConfig, setup: Setup, state: PQNState) -> tuple[PQNState, 
     rollout_key, epoch_key, key = jax.random.split(fast_key(state.key), 3)
 
     # 1. Act epsilon-greedily for num_steps steps of every env.
-    act = epsilon_greedy_act(setup, state.params, epsilon(config, state.env_steps))
-    envs, _, transitions, _, episodes = rollout(
+    act = epsilon_greedy_act(setup, state.params, epsilon(config, state.env_steps), greedy_values=True)
+    envs, _, transitions, acted_q, episodes = rollout(
         setup.env, setup.env_params, state.envs, None, act, rollout_key, config.num_steps
     )
 
-    # 2. Q(lambda) targets from the same parameters' greedy values of the pre-reset next observations.
-    next_q = network.apply(state.params, transitions.next_obs).max(-1)
+    # 2. Q(lambda) targets from the same parameters' greedy values of the pre-reset next observations (mostly the
+    #    values computed while acting).
+    def greedy_value(params, obs):
+        return network.apply(params, obs).max(-1)
+
+    next_q = bootstrap_values(greedy_value, state.params, acted_q, transitions, envs.obs)
     reward = config.reward_scale * transitions.reward
     targets = q_lambda_targets(reward, transitions.terminated, transitions.done, next_q, config.gamma, config.q_lambda)
 

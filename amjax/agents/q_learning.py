@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from amjax import strategy
 from amjax.agents.config import AgentConfig, static
 from amjax.agents.networks import VECTOR_TORSO, RecurrentQNetwork, Torso, check_activation, zero_carry
 from amjax.agents.optim import clipped_adam
@@ -133,11 +134,13 @@ def recurrent_q_network(
     )
 
 
-def epsilon_greedy_act(setup: Setup, params: Any, eps: jax.Array) -> Callable:
-    """The epsilon-greedy act function of a feed-forward Q-network (Dueling DQN, PQN), for `rollout`."""
+def epsilon_greedy_act(setup: Setup, params: Any, eps: jax.Array, greedy_values: bool = False) -> Callable:
+    """The epsilon-greedy act function of a feed-forward Q-network (Dueling DQN, PQN), for `rollout`; with
+    `greedy_values`, its extras are max_a Q(obs, a) of the observations it acted on (PQN's `bootstrap_values`)."""
 
     def act(batch: EnvBatch, carry: Any, key: jax.Array):
-        return epsilon_greedy(setup.network.apply(params, batch.obs), key, eps), carry, None
+        q = setup.network.apply(params, batch.obs)
+        return epsilon_greedy(q, key, eps), carry, q.max(-1) if greedy_values else None
 
     return act
 
@@ -248,6 +251,42 @@ def q_lambda_targets(
         backward, jnp.zeros_like(reward[0]), (reward, terminated.astype(reward.dtype), next_q, carries), reverse=True
     )
     return targets
+
+
+def bootstrap_values(
+    value_fn: Callable[[Any, jax.Array], jax.Array],
+    params: Any,
+    acted_values: jax.Array,
+    transitions: Transition,
+    last_obs: jax.Array,
+) -> jax.Array:
+    """`value_fn(params, obs)` of each step's pre-reset next observation, [T, num_envs], from a rollout whose act
+    function kept `acted_values`, the values of the observations it acted on (`epsilon_greedy_act` with
+    `greedy_values=True`).
+
+    Where an episode goes on, step t's next observation is the one acted on at t + 1 (at the last step, `last_obs`:
+    one pass over the envs), so its value is already there; where it terminated, the value is not used (no
+    bootstrap). Only a truncation's pre-reset observation needs a new pass: up to `num_envs` of them (what a time
+    limit of at least T steps allows) are gathered into one pass of `num_envs` rows; a rollout with more (short time
+    limits) takes one pass over every next observation instead (a branch, `uniform_cond`). Under the "gpu" strategy,
+    where a branch reads its predicate back to the host, it takes that pass every time. Each value is `value_fn`'s
+    of that observation whichever way it comes (to float rounding)."""
+    later = jnp.concatenate([acted_values[1:], value_fn(params, last_obs)[None]])
+    truncated = jnp.logical_and(transitions.done, jnp.logical_not(transitions.terminated))
+    operands = (params, truncated, later, transitions.next_obs)
+
+    def every(params: Any, truncated: jax.Array, later: jax.Array, next_obs: jax.Array) -> jax.Array:
+        return jnp.where(truncated, value_fn(params, next_obs), later)
+
+    def gathered(params: Any, truncated: jax.Array, later: jax.Array, next_obs: jax.Array) -> jax.Array:
+        flat, values = truncated.reshape(-1), later.reshape(-1)
+        rows = jnp.nonzero(flat, size=truncated.shape[-1], fill_value=0)[0]  # padding: row 0, rewritten as it is
+        fresh = value_fn(params, next_obs.reshape(-1, *next_obs.shape[2:])[rows])
+        return values.at[rows].set(jnp.where(flat[rows], fresh, values[rows])).reshape(later.shape)
+
+    if strategy.is_gpu():
+        return every(*operands)
+    return uniform_cond(truncated.sum() > truncated.shape[-1], every, gathered, *operands)
 
 
 def learn_or_wait(learning: jax.Array, learn: Any, *operands: Any) -> tuple[Any, Any, jax.Array]:

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from amjax import strategy
 from amjax.agents import (
     PQN,
     PQN_RNN,
@@ -26,7 +27,7 @@ from amjax.agents import (
     unstack_config,
 )
 from amjax.agents.pqn import q_lambda_targets
-from amjax.agents.q_learning import recurrent_epsilon_greedy
+from amjax.agents.q_learning import bootstrap_values, epsilon_greedy_act, recurrent_epsilon_greedy
 from amjax.agents.rollout import rollout
 from amjax.agents.training import evaluate
 
@@ -84,6 +85,48 @@ def test_lambda_zero_is_one_step_q_learning():
 TINY = PQNConfig(
     total_timesteps=2048, eval_every=1024, num_envs=4, num_steps=32, num_minibatches=2, hidden=(32,), eval_episodes=2
 )
+
+
+@pytest.mark.parametrize(("time_limit", "more_truncations_than_envs"), [(200, False), (13, False), (3, True)])
+@pytest.mark.parametrize("layout", ["cpu", "gpu"])
+def test_bootstrap_values_are_the_values_of_every_pre_reset_next_observation(
+    time_limit, more_truncations_than_envs, layout
+):
+    """PQN's bootstrap values (mostly kept from acting) equal one pass of the network over every pre-reset next
+    observation wherever a target uses them (not after a termination), with no truncation, a few (each gathered),
+    or more truncations than envs (the full pass), under both strategies, and for a vmapped batch of two parameter
+    sets, each as alone."""
+    config = PQNConfig(num_envs=4, num_steps=24, num_minibatches=2, hidden=(16,), cost=0.1)
+    setup = PQN.setup(config)
+    setup = setup.replace(
+        env_params=setup.env_params.replace(
+            env_params=setup.env_params.env_params.replace(max_steps_in_episode=time_limit)
+        )
+    )
+
+    def values(params, key):
+        state = pqn.init(config, setup, jax.random.key(0))
+        act = epsilon_greedy_act(setup, params, jnp.float32(0.3), greedy_values=True)
+        last, _, transitions, acted, _ = rollout(
+            setup.env, setup.env_params, state.envs, None, act, key, config.num_steps
+        )
+        kept = bootstrap_values(
+            lambda p, obs: setup.network.apply(p, obs).max(-1), params, acted, transitions, last.obs
+        )
+        fresh = setup.network.apply(params, transitions.next_obs).max(-1)
+        return kept, fresh, transitions
+
+    params = jax.vmap(lambda k: setup.network.init(k, jnp.zeros((1, 5))))(jax.random.split(jax.random.key(1), 2))
+    keys = jax.random.split(jax.random.key(2), 2)
+    with strategy.use(layout):
+        kept, fresh, transitions = jax.jit(jax.vmap(values))(params, keys)
+        alone = jax.jit(values)(jax.tree.map(lambda x: x[1], params), keys[1])
+    truncated = np.asarray(transitions.done & ~transitions.terminated)
+    assert (truncated.sum((1, 2)) > config.num_envs).any() == more_truncations_than_envs
+    assert truncated.any() == (time_limit < 200)
+    used = ~np.asarray(transitions.terminated)
+    np.testing.assert_allclose(np.asarray(kept)[used], np.asarray(fresh)[used], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(alone[0]), np.asarray(kept[1]), rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.slow
