@@ -310,11 +310,13 @@ def run_cases(
     return recorder.path
 
 
-def time_training_batch(algo: Any, items: Sequence[Any], keys: Any) -> dict[str, Any]:
+def time_training_batch(algo: Any, items: Sequence[Any], keys: Any, profile_top: int = 0) -> dict[str, Any]:
     """Compile and run validated configs `items` (one static key) of `algo` with `keys` as one vmapped training
     program split over this process's CPU devices, as a sweep runs a batch; the compile and run seconds, the env
     steps per second of the run (all configurations together, evaluations included) and the median final test
-    costed return. JAX is imported here, so a child can set its device count before."""
+    costed return. With `profile_top` > 0, one more run is traced (`profiles.profile_call`, under "profile": its
+    `profile_top` costliest source lines, ops and kernels). JAX is imported here, so a child can set its device count
+    before."""
     import jax
     import jax.numpy as jnp
 
@@ -336,13 +338,19 @@ def time_training_batch(algo: Any, items: Sequence[Any], keys: Any) -> dict[str,
     start = time.perf_counter()
     returns = jax.block_until_ready(compiled(config, keys))
     run_s = time.perf_counter() - start
-    return {
+    timing = {
         "steps_per_config": total,
         "compile_s": round(compile_s, 1),
         "run_s": round(run_s, 1),
         "env_steps_per_s": round(len(items) * total / run_s),
         "final_eval_return_median": round(float(jnp.median(returns[:, -1])), 1),
     }
+    if profile_top > 0:
+        from benchmarks.profiles import profile_call
+
+        run = lambda: jax.block_until_ready(compiled(config, keys))  # noqa: E731
+        timing["profile"] = profile_call(run, [compiled.as_text()], profile_top)
+    return timing
 
 
 def child_progress(measurements: dict[str, Any]) -> None:

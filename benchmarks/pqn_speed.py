@@ -10,6 +10,7 @@ against dqn, pqn-rnn against drqn).
     python benchmarks/pqn_speed.py                 # benchmarks/results/pqn_speed_<date>_<machine>.jsonl / .md
     python benchmarks/pqn_speed.py --configs 4 --steps 8192 --envs CartPole-v0   # a smoke run
     python benchmarks/pqn_speed.py --envs CartPole-v0 --agents dqn pqn --set pqn.update_epochs=2   # an ablation
+    python benchmarks/pqn_speed.py --envs CartPole-v0 --agents pqn --profile 15   # where PQN's time goes
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from typing import Any
 if not __package__:  # run as a file: the repository importable, for `benchmarks.harness`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks import harness  # noqa: E402
+from benchmarks.profiles import top_table  # noqa: E402
 
 COSTS = (0.1, 0.2, 0.3)
 ENVS = ("CartPole-v0", "Acrobot-v1", "LunarLander-v3")
@@ -31,10 +33,18 @@ COUNTERPART = {"pqn": "dqn", "pqn-rnn": "drqn"}  # the speed ratio's denominator
 
 
 def run_case(
-    env_id: str, agent: str, configs: int, steps: int, eval_every: int, devices: int, overrides: dict[str, Any]
+    env_id: str,
+    agent: str,
+    configs: int,
+    steps: int,
+    eval_every: int,
+    devices: int,
+    overrides: dict[str, Any],
+    profile: int = 0,
 ) -> dict[str, Any]:
     """Compile and time one case in this process, its configurations split over `devices` CPU devices, with the
-    config fields `overrides` set on top of the env's presets."""
+    config fields `overrides` set on top of the env's presets; with `profile` > 0, then trace one more run and keep
+    its `profile` costliest source lines, ops and kernels."""
     import jax
 
     jax.config.update("jax_num_cpu_devices", devices)  # before JAX starts (this child's first JAX call)
@@ -44,7 +54,7 @@ def run_case(
 
     items = case_configs(env_id, agent, configs, steps, eval_every, overrides)
     keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
-    timing = harness.time_training_batch(ALGORITHMS[agent], items, keys)  # on the `devices` CPU devices set above
+    timing = harness.time_training_batch(ALGORITHMS[agent], items, keys, profile)  # on the `devices` set above
     return {"env": env_id, "agent": agent, "overrides": overrides, "configs": configs, "devices": devices, **timing}
 
 
@@ -154,8 +164,20 @@ def render(runs: list[dict[str, Any]]) -> str:
                 ],
             )
             + "".join(f"\n{r['env_id']} {label(r)}: {r['status']}\n" for r in run["cases"] if r["status"] != "ok")
+            + "".join(profile_tables(r) for r in results if "profile" in r)
         )
     return "\n".join(parts)
+
+
+def profile_tables(result: dict[str, Any]) -> str:
+    """A profiled case's costliest source lines (`--profile`; the record keeps its ops and kernels too)."""
+    profile = result["profile"]
+    return (
+        f"\n## {result['env']} {label(result)}: where the time goes\n\n"
+        f"One more run traced: {profile['kernels']:,} kernels kept in the trace, {profile['busy_ms']:,.0f} ms busy "
+        "over both devices' threads (on a CPU the trace keeps part of a long run's kernels: read the shares, not "
+        "the totals).\n\n" + top_table(profile["top_sources"], "source (op)")
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -179,6 +201,14 @@ def main(argv: list[str] | None = None) -> int:
         help="a config field of one agent's cases on top of the env's presets (repeatable), for ablations; the ratio "
         "is against the counterpart's unchanged cases of the same run",
     )
+    parser.add_argument(
+        "--profile",
+        type=int,
+        default=0,
+        metavar="N",
+        help="after timing, trace one more run of each case and list its N costliest source lines (ops and kernels "
+        "in the record)",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:  # before anything starts JAX: the child sets its device count first
@@ -199,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--envs: {error}")
     if not 1 <= args.devices <= usable_cores():
         parser.error(f"--devices: {args.devices}; allowed values: 1 to {usable_cores()} (usable cores)")
+    if args.profile < 0:
+        parser.error(f"--profile: got {args.profile}; allowed values: 0 (no trace) or a positive number of rows")
     if args.configs % args.devices:
         parser.error(f"--configs: {args.configs} must be a multiple of --devices ({args.devices})")
     try:
@@ -221,6 +253,7 @@ def main(argv: list[str] | None = None) -> int:
             "eval_every": args.eval_every,
             "devices": args.devices,
             "overrides": overrides[agent],
+            "profile": args.profile,
         }
         for env_id in args.envs
         for agent in args.agents

@@ -73,13 +73,13 @@ def test_table_without_rows():
     assert len(lines) == 2 and lines[0].split()[1] == "implementation"
 
 
-def test_gpu_profile_names_the_source_line_behind_each_kernel(tmp_path):
-    """benchmarks/gpu_profile.py: a profiled program's device (here: CPU) time is attributed to the line that built
-    each op, through the optimised HLO's stack-frame tables."""
+def test_profile_names_the_source_line_behind_each_kernel():
+    """benchmarks/profiles.py (gpu_profile.py's and pqn_speed.py --profile's): a profiled program's device (here:
+    CPU) time is attributed to the line that built each op, through the optimised HLO's stack-frame tables."""
     import jax
     import jax.numpy as jnp
 
-    from benchmarks import gpu_profile
+    from benchmarks import profiles
 
     def program(x):
         return jnp.tanh(x) @ x  # the line the profile must name
@@ -87,15 +87,12 @@ def test_gpu_profile_names_the_source_line_behind_each_kernel(tmp_path):
     x = jnp.ones((128, 128))
     compiled = jax.jit(program).lower(x).compile()
     compiled(x).block_until_ready()
-    with jax.profiler.trace(str(tmp_path), create_perfetto_trace=True):
-        compiled(x).block_until_ready()
-    sources = gpu_profile.hlo_sources(compiled.as_text())
+    summary = profiles.profile_call(lambda: compiled(x).block_until_ready(), [compiled.as_text()], top=5)
     line = program.__code__.co_firstlineno + 1
-    assert f"test_benchmark_helpers.py:{line} " in " ".join(sources.values())
-    summary = gpu_profile.summarise(gpu_profile.device_events(tmp_path), sources, top=5)
     assert summary["kernels"] >= 2 and summary["busy_ms"] > 0
     named = [row["name"] for row in summary["top_sources"]]
     assert any(f"test_benchmark_helpers.py:{line} " in name for name in named), named
+    assert "| source (op) |" in profiles.top_table(summary["top_sources"], "source (op)")
 
 
 def test_gpu_profile_variant_changes_the_program_it_names():
