@@ -173,6 +173,22 @@ def test_pqn_speed_overrides_parse_and_label_their_cases():
     assert "| pqn (update_epochs=2, hidden=(32, 32)) |" in table and "3.0x" in table
     older = [{k: v for k, v in r.items() if k != "overrides"} for r in results]
     assert "| pqn |" in pqn_speed.render([run | {"cases": older}])
+    # A profiled case (--profile) gets its costliest source lines after the table; an unprofiled one none.
+    rows = [{"name": "networks.py:70 LayerNorm.__call__ (reduce_sum)", "count": 4096, "ms": 25.7, "share": 0.108}]
+    results[1]["profile"] = {"kernels": 141141, "busy_ms": 400.4, "span_ms": 165.0, "top_sources": rows}
+    profiled = pqn_speed.render([run | {"cases": results}])
+    assert "## CartPole-v0 pqn (update_epochs=2, hidden=(32, 32)): where the time goes" in profiled
+    assert "| networks.py:70 LayerNorm.__call__ (reduce_sum) | 4,096 | 25.7 | 10.8% |" in profiled
+    assert "CartPole-v0 dqn: where" not in profiled
+
+
+def test_pqn_speed_refuses_a_negative_profile(capsys):
+    from benchmarks import pqn_speed
+
+    with pytest.raises(SystemExit) as exit_info:
+        pqn_speed.main(["--envs", "CartPole-v0", "--agents", "pqn", "--profile", "-1"])
+    assert exit_info.value.code == 2
+    assert "--profile: got -1; allowed values: 0" in capsys.readouterr().err
 
 
 def test_pqn_speed_refuses_a_value_the_config_refuses_before_any_case_runs(capsys):

@@ -59,9 +59,9 @@ class LayerNorm(nn.Module):
     initialisation and epsilon, and a hand-written gradient. The statistics take two passes, as flax's
     `use_fast_variance=False` (exact in float32 for features with a large mean and a small spread, where flax's
     default one-pass E[x^2] - E[x]^2 is not); the input's gradient comes from two means. XLA's CPU backend runs
-    autodiff's gradient of `nn.LayerNorm` as many small reductions over the 64-128 features; this one takes about a
-    third less time in PQN's gradient step (docs/pqn.md). Equal to flax's in value and gradient to float rounding
-    (tests/agents/test_layer_norm.py)."""
+    autodiff's gradient of `nn.LayerNorm` as many small reductions over the 64-128 features; this one removes about
+    a fifth of LayerNorm's cost in PQN's gradient step (`benchmarks/layer_norm_grad.py`, docs/pqn.md). Equal to
+    flax's in value and gradient to float rounding (tests/agents/test_layer_norm.py)."""
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:

@@ -87,16 +87,23 @@ TINY = PQNConfig(
 )
 
 
-@pytest.mark.parametrize(("time_limit", "more_truncations_than_envs"), [(200, False), (13, False), (3, True)])
+NOISY_OPTIONS = {"mode": "noisy", "noise_std": 0.1, "extra_obs": ("since_measured", "last_action")}
+
+
+@pytest.mark.parametrize(
+    ("time_limit", "more_truncations_than_envs", "options"),
+    [(200, False, {}), (13, False, {}), (3, True, {}), (13, False, NOISY_OPTIONS)],
+)
 @pytest.mark.parametrize("layout", ["cpu", "gpu"])
 def test_bootstrap_values_are_the_values_of_every_pre_reset_next_observation(
-    time_limit, more_truncations_than_envs, layout
+    time_limit, more_truncations_than_envs, options, layout
 ):
     """PQN's bootstrap values (mostly kept from acting) equal one pass of the network over every pre-reset next
     observation wherever a target uses them (not after a termination), with no truncation, a few (each gathered),
-    or more truncations than envs (the full pass), under both strategies, and for a vmapped batch of two parameter
-    sets, each as alone."""
-    config = PQNConfig(num_envs=4, num_steps=24, num_minibatches=2, hidden=(16,), cost=0.1)
+    or more truncations than envs (the full pass), with the measurement options that draw noise and append to the
+    observation, under both strategies, and for a vmapped batch of two parameter sets, each as alone."""
+    config = PQNConfig(num_envs=4, num_steps=24, num_minibatches=2, hidden=(16,), cost=0.1, **options)
+    config = config.replace(total_timesteps=9600, eval_every=960).validate()  # the options checked
     setup = PQN.setup(config)
     setup = setup.replace(
         env_params=setup.env_params.replace(
@@ -116,7 +123,8 @@ def test_bootstrap_values_are_the_values_of_every_pre_reset_next_observation(
         fresh = setup.network.apply(params, transitions.next_obs).max(-1)
         return kept, fresh, transitions
 
-    params = jax.vmap(lambda k: setup.network.init(k, jnp.zeros((1, 5))))(jax.random.split(jax.random.key(1), 2))
+    obs = pqn.init(config, setup, jax.random.key(0)).envs.obs
+    params = jax.vmap(lambda k: setup.network.init(k, obs[:1]))(jax.random.split(jax.random.key(1), 2))
     keys = jax.random.split(jax.random.key(2), 2)
     with strategy.use(layout):
         kept, fresh, transitions = jax.jit(jax.vmap(values))(params, keys)
