@@ -40,11 +40,11 @@ def run_case(
     eval_every: int,
     devices: int,
     overrides: dict[str, Any],
-    profile: int = 0,
+    profile_top: int = 0,
 ) -> dict[str, Any]:
     """Compile and time one case in this process, its configurations split over `devices` CPU devices, with the
-    config fields `overrides` set on top of the env's presets; with `profile` > 0, then trace one more run and keep
-    its `profile` costliest source lines, ops and kernels."""
+    config fields `overrides` set on top of the env's presets; with `profile_top` > 0, then trace one more run and
+    keep its `profile_top` costliest source lines, ops and kernels (under "profile")."""
     import jax
 
     jax.config.update("jax_num_cpu_devices", devices)  # before JAX starts (this child's first JAX call)
@@ -54,7 +54,7 @@ def run_case(
 
     items = case_configs(env_id, agent, configs, steps, eval_every, overrides)
     keys = jnp.stack([jax.random.PRNGKey(i // len(COSTS)) for i in range(configs)])
-    timing = harness.time_training_batch(ALGORITHMS[agent], items, keys, profile)  # on the `devices` set above
+    timing = harness.time_training_batch(ALGORITHMS[agent], items, keys, profile_top)  # on the `devices` set above
     return {"env": env_id, "agent": agent, "overrides": overrides, "configs": configs, "devices": devices, **timing}
 
 
@@ -164,7 +164,7 @@ def render(runs: list[dict[str, Any]]) -> str:
                 ],
             )
             + "".join(f"\n{r['env_id']} {label(r)}: {r['status']}\n" for r in run["cases"] if r["status"] != "ok")
-            + "".join(profile_tables(r) for r in results if "profile" in r)
+            + "".join(profile_tables(r) for r in results if isinstance(r.get("profile"), dict))
         )
     return "\n".join(parts)
 
@@ -253,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
             "eval_every": args.eval_every,
             "devices": args.devices,
             "overrides": overrides[agent],
-            "profile": args.profile,
+            "profile_top": args.profile,
         }
         for env_id in args.envs
         for agent in args.agents

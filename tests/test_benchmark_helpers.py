@@ -176,6 +176,7 @@ def test_pqn_speed_overrides_parse_and_label_their_cases():
     # A profiled case (--profile) gets its costliest source lines after the table; an unprofiled one none.
     rows = [{"name": "networks.py:70 LayerNorm.__call__ (reduce_sum)", "count": 4096, "ms": 25.7, "share": 0.108}]
     results[1]["profile"] = {"kernels": 141141, "busy_ms": 400.4, "span_ms": 165.0, "top_sources": rows}
+    results[0]["profile"] = 0  # a case of a run before `profile_top` was named so: the row count, no trace
     profiled = pqn_speed.render([run | {"cases": results}])
     assert "## CartPole-v0 pqn (update_epochs=2, hidden=(32, 32)): where the time goes" in profiled
     assert "| networks.py:70 LayerNorm.__call__ (reduce_sum) | 4,096 | 25.7 | 10.8% |" in profiled
