@@ -22,7 +22,7 @@ from benchmarks import harness
 _INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=\s*.*?metadata=\{([^}]*)\}")
 _FIELD = re.compile(r'(\w+)=(?:"((?:[^"\\]|\\.)*)"|(\S+))')
 _TABLE_ROW = re.compile(r"^(\d+) (?:\"(.*)\"|\{(.*)\})$")
-_CONTROL_FLOW = re.compile(r"^(while|conditional|call)(\.\d+)?$")
+_CONTROL_FLOW = re.compile(r"^(while|cond|conditional|call)(\.\d+)?$")
 
 
 def _tables(hlo_text: str) -> dict[str, dict[int, Any]]:

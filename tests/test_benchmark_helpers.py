@@ -95,6 +95,27 @@ def test_profile_names_the_source_line_behind_each_kernel():
     assert "| source (op) |" in profiles.top_table(summary["top_sources"], "source (op)")
 
 
+def test_profile_on_a_cpu_leaves_loops_and_branches_out():
+    """On a CPU a loop's or branch's thunk spans its body's kernels, which are counted themselves: the summary keeps
+    the body's kernels only, so no time is counted twice."""
+    import jax
+    import jax.numpy as jnp
+
+    from benchmarks import profiles
+
+    def program(x):
+        body = lambda _, x: jax.lax.cond(x.sum() > 0, jnp.tanh, jnp.sin, x @ x)  # noqa: E731
+        return jax.lax.fori_loop(0, 20, body, x)
+
+    x = jnp.full((64, 64), 0.01)
+    compiled = jax.jit(program).lower(x).compile()
+    compiled(x).block_until_ready()
+    summary = profiles.profile_call(lambda: compiled(x).block_until_ready(), [compiled.as_text()], top=50)
+    names = [row["name"] for row in summary["top_ops"]]
+    assert names and not [n for n in names if profiles._CONTROL_FLOW.match(n)], names
+    assert summary["kernels"] >= 20  # the body's matrix product, once per iteration
+
+
 def test_gpu_profile_variant_changes_the_program_it_names():
     """benchmarks/gpu_profile.py --variants target-cond: under the GPU strategy the Q-learners' target update
     becomes a conditional (one more than the learning step's), and the patch is gone after the block."""
