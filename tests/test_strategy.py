@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from amjax import strategy
-from amjax.agents import ALGORITHMS, DQNConfig, DRQNConfig, PPOConfig, stack_configs
+from amjax.agents import ALGORITHMS, DQNConfig, DRQNConfig, PPOConfig, PQNConfig, stack_configs
 from amjax.batching import in_groups, uniform_cond
 from amjax.sweep.batches import compiled_programs, rescore_program
 
@@ -80,10 +80,13 @@ def test_uniform_cond_under_gpu_is_one_conditional_with_the_same_values(pred) ->
 def _configs(agent: str) -> list:
     """Small configurations of `agent` whose programs take every strategy-dependent path: configurations trained
     in groups of 2 (`train_group`), PPO's grouped epochs and value passes, the Q-learners' conditionals (learning
-    starts mid-run, target syncs, DRQN's cached-target refresh)."""
+    starts mid-run, target syncs, DRQN's cached-target refresh), PQN's bootstrap values."""
     common = {"env_id": "CartPole-v0", "train_group": 2, "eval_episodes": 4}
     if agent == "ppo":
         base = PPOConfig(**common, num_envs=4, num_steps=32, num_minibatches=2, update_epochs=2, hidden=(16,))
+        base = base.replace(total_timesteps=1024, eval_every=256)
+    elif agent == "pqn":  # bootstrap values: gathered truncations and a branch on the CPU, one pass on a GPU
+        base = PQNConfig(**common, num_envs=4, num_steps=32, num_minibatches=2, update_epochs=2, hidden=(16,))
         base = base.replace(total_timesteps=1024, eval_every=256)
     elif agent == "dqn":
         base = DQNConfig(**common, num_envs=2, buffer_size=512, batch_size=16, learning_starts=200, hidden=(16,))
@@ -96,7 +99,7 @@ def _configs(agent: str) -> list:
     return [base.replace(cost=cost, learning_rate=lr).validate() for cost in (0.1, 0.3) for lr in (1e-3, 3e-3)]
 
 
-@pytest.mark.parametrize("agent", ["ppo", "dqn", "drqn"])
+@pytest.mark.parametrize("agent", ["ppo", "dqn", "drqn", "pqn"])
 @pytest.mark.slow
 def test_the_gpu_layout_trains_as_the_cpu_layout(agent, monkeypatch) -> None:
     """A sweep batch's programs compiled for each strategy on the CPU: the same evaluation rows and re-scores (to
