@@ -57,11 +57,11 @@ _layer_norm.defvjp(_layer_norm_fwd, _layer_norm_bwd)
 class LayerNorm(nn.Module):
     """LayerNorm over the last axis (Ba et al. 2016) with `nn.LayerNorm`'s parameters ("scale", "bias"), names,
     initialisation and epsilon, and a hand-written gradient. The statistics take two passes, as flax's
-    `use_fast_variance=False` (exact in float32 for features with a large mean and a small spread, where flax's
-    default one-pass E[x^2] - E[x]^2 is not); the input's gradient comes from two means. XLA's CPU backend runs
-    autodiff's gradient of `nn.LayerNorm` as many small reductions over the 64-128 features; this one removes about
-    a fifth of LayerNorm's cost in PQN's gradient step (`benchmarks/layer_norm_grad.py`, docs/pqn.md). Equal to
-    flax's in value and gradient to float rounding (tests/agents/test_layer_norm.py)."""
+    `use_fast_variance=False` (accurate in float32 for features with a large mean and a small spread, where flax's
+    default one-pass E[x^2] - E[x]^2 loses every digit); the input's gradient comes from two means. XLA's CPU
+    backend runs autodiff's gradient of `nn.LayerNorm` as many small reductions over the 64-128 features; this one
+    removes about a fifth of LayerNorm's cost in PQN's gradient step (`benchmarks/layer_norm_grad.py`,
+    docs/pqn.md). Equal to flax's in value and gradient to float rounding (tests/agents/test_layer_norm.py)."""
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:

@@ -264,13 +264,15 @@ def bootstrap_values(
     function kept `acted_values`, the values of the observations it acted on (`epsilon_greedy_act` with
     `greedy_values=True`).
 
-    Where an episode goes on, step t's next observation is the one acted on at t + 1 (at the last step, `last_obs`:
-    one pass over the envs), so its value is already there; where it terminated, the value is not used (no
-    bootstrap). Only a truncation's pre-reset observation needs a new pass: up to `num_envs` of them (what a time
-    limit of at least T steps allows) are gathered into one pass of `num_envs` rows; a rollout with more (short time
-    limits) takes one pass over every next observation instead (a branch, `uniform_cond`). Under the "gpu" strategy,
-    where a branch reads its predicate back to the host, it takes that pass every time. Each value is `value_fn`'s
-    of that observation whichever way it comes (to float rounding)."""
+    Where an episode goes on, step t's next observation is the one acted on at t + 1, so its value is already there;
+    where it terminated, the value is not used (no bootstrap). Two passes of `num_envs` rows remain: the rollout's
+    last next observations (`last_obs`), and the truncations' pre-reset observations, gathered (a time limit of at
+    least T steps allows one per env). A rollout with more truncations than envs (short time limits) takes one pass
+    over every next observation instead (a branch, `uniform_cond`). Under the "gpu" strategy, where a branch reads
+    its predicate back to the host, it is that one pass, as before. Each value is `value_fn`'s of that observation
+    whichever way it comes (to float rounding)."""
+    if strategy.is_gpu():
+        return value_fn(params, transitions.next_obs)
     later = jnp.concatenate([acted_values[1:], value_fn(params, last_obs)[None]])
     truncated = jnp.logical_and(transitions.done, jnp.logical_not(transitions.terminated))
     operands = (params, truncated, later, transitions.next_obs)
@@ -279,13 +281,12 @@ def bootstrap_values(
         return jnp.where(truncated, value_fn(params, next_obs), later)
 
     def gathered(params: Any, truncated: jax.Array, later: jax.Array, next_obs: jax.Array) -> jax.Array:
-        flat, values = truncated.reshape(-1), later.reshape(-1)
-        rows = jnp.nonzero(flat, size=truncated.shape[-1], fill_value=0)[0]  # padding: row 0, rewritten as it is
-        fresh = value_fn(params, next_obs.reshape(-1, *next_obs.shape[2:])[rows])
-        return values.at[rows].set(jnp.where(flat[rows], fresh, values[rows])).reshape(later.shape)
+        flat = truncated.reshape(-1)
+        rows = jnp.nonzero(flat, size=truncated.shape[-1], fill_value=flat.size)[0]  # padding: past the end
+        obs = next_obs.reshape(-1, *next_obs.shape[2:]).at[rows].get(mode="fill", fill_value=0)
+        fresh = value_fn(params, obs)
+        return later.reshape(-1).at[rows].set(fresh, mode="drop").reshape(later.shape)  # the padding dropped
 
-    if strategy.is_gpu():
-        return every(*operands)
     return uniform_cond(truncated.sum() > truncated.shape[-1], every, gathered, *operands)
 
 

@@ -91,32 +91,26 @@ NOISY_OPTIONS = {"mode": "noisy", "noise_std": 0.1, "extra_obs": ("since_measure
 
 
 @pytest.mark.parametrize(
-    ("time_limit", "more_truncations_than_envs", "options"),
-    [(200, False, {}), (13, False, {}), (3, True, {}), (13, False, NOISY_OPTIONS)],
+    ("time_limits", "options"),
+    [((200, 200), {}), ((13, 13), {}), ((3, 3), {}), ((13, 3), {}), ((13, 13), NOISY_OPTIONS)],
 )
 @pytest.mark.parametrize("layout", ["cpu", "gpu"])
-def test_bootstrap_values_are_the_values_of_every_pre_reset_next_observation(
-    time_limit, more_truncations_than_envs, options, layout
-):
+def test_bootstrap_values_are_the_values_of_every_pre_reset_next_observation(time_limits, options, layout):
     """PQN's bootstrap values (mostly kept from acting) equal one pass of the network over every pre-reset next
-    observation wherever a target uses them (not after a termination), with no truncation, a few (each gathered),
-    or more truncations than envs (the full pass), with the measurement options that draw noise and append to the
-    observation, under both strategies, and for a vmapped batch of two parameter sets, each as alone."""
+    observation wherever a target uses them (not after a termination): for a vmapped batch of two members with
+    their own time limits, with no truncation, a few (gathered), more than the envs (the full pass) and one member of
+    each (both branches and a select), with the measurement options that draw noise and append to the observation,
+    under both strategies; and a member alone as in the batch."""
     config = PQNConfig(num_envs=4, num_steps=24, num_minibatches=2, hidden=(16,), cost=0.1, **options)
     config = config.replace(total_timesteps=9600, eval_every=960).validate()  # the options checked
     setup = PQN.setup(config)
-    setup = setup.replace(
-        env_params=setup.env_params.replace(
-            env_params=setup.env_params.env_params.replace(max_steps_in_episode=time_limit)
-        )
-    )
 
-    def values(params, key):
+    def values(params, key, time_limit):
+        inner = setup.env_params.env_params.replace(max_steps_in_episode=time_limit)
+        env_params = setup.env_params.replace(env_params=inner)
         state = pqn.init(config, setup, jax.random.key(0))
         act = epsilon_greedy_act(setup, params, jnp.float32(0.3), greedy_values=True)
-        last, _, transitions, acted, _ = rollout(
-            setup.env, setup.env_params, state.envs, None, act, key, config.num_steps
-        )
+        last, _, transitions, acted, _ = rollout(setup.env, env_params, state.envs, None, act, key, config.num_steps)
         kept = bootstrap_values(
             lambda p, obs: setup.network.apply(p, obs).max(-1), params, acted, transitions, last.obs
         )
@@ -125,13 +119,16 @@ def test_bootstrap_values_are_the_values_of_every_pre_reset_next_observation(
 
     obs = pqn.init(config, setup, jax.random.key(0)).envs.obs
     params = jax.vmap(lambda k: setup.network.init(k, obs[:1]))(jax.random.split(jax.random.key(1), 2))
-    keys = jax.random.split(jax.random.key(2), 2)
+    keys, limits = jax.random.split(jax.random.key(2), 2), jnp.array(time_limits)
     with strategy.use(layout):
-        kept, fresh, transitions = jax.jit(jax.vmap(values))(params, keys)
-        alone = jax.jit(values)(jax.tree.map(lambda x: x[1], params), keys[1])
+        kept, fresh, transitions = jax.jit(jax.vmap(values))(params, keys, limits)
+        alone = jax.jit(values)(jax.tree.map(lambda x: x[1], params), keys[1], limits[1])
     truncated = np.asarray(transitions.done & ~transitions.terminated)
-    assert (truncated.sum((1, 2)) > config.num_envs).any() == more_truncations_than_envs
-    assert truncated.any() == (time_limit < 200)
+    overflow = truncated.sum((1, 2)) > config.num_envs
+    assert overflow.tolist() == [
+        limit < 12 for limit in time_limits
+    ]  # from a reset, a limit over T / 2 truncates an env at most once
+    assert truncated.any((1, 2)).tolist() == [limit < 200 for limit in time_limits]
     used = ~np.asarray(transitions.terminated)
     np.testing.assert_allclose(np.asarray(kept)[used], np.asarray(fresh)[used], rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(np.asarray(alone[0]), np.asarray(kept[1]), rtol=1e-5, atol=1e-5)
