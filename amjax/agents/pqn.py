@@ -138,7 +138,7 @@ def update(config: PQNConfig, setup: Setup, state: PQNState) -> tuple[PQNState, 
     def greedy_value(params, obs):
         return network.apply(params, obs).max(-1)
 
-    next_q = bootstrap_values(greedy_value, state.params, acted_q, transitions, envs.obs)
+    next_q = bootstrap_values(greedy_value, state.params, acted_q, transitions)
     reward = config.reward_scale * transitions.reward
     targets = q_lambda_targets(reward, transitions.terminated, transitions.done, next_q, config.gamma, config.q_lambda)
 

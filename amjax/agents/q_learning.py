@@ -254,39 +254,35 @@ def q_lambda_targets(
 
 
 def bootstrap_values(
-    value_fn: Callable[[Any, jax.Array], jax.Array],
-    params: Any,
-    acted_values: jax.Array,
-    transitions: Transition,
-    last_obs: jax.Array,
+    value_fn: Callable[[Any, jax.Array], jax.Array], params: Any, acted_values: jax.Array, transitions: Transition
 ) -> jax.Array:
     """`value_fn(params, obs)` of each step's pre-reset next observation, [T, num_envs], from a rollout whose act
     function kept `acted_values`, the values of the observations it acted on (`epsilon_greedy_act` with
     `greedy_values=True`).
 
     Where an episode goes on, step t's next observation is the one acted on at t + 1, so its value is already there;
-    where it terminated, the value is not used (no bootstrap). Two passes of `num_envs` rows remain: the rollout's
-    last next observations (`last_obs`), and the truncations' pre-reset observations, gathered (a time limit of at
-    least T steps allows one per env). A rollout with more truncations than envs (short time limits) takes one pass
-    over every next observation instead (a branch, `uniform_cond`). Under the "gpu" strategy, where a branch reads
-    its predicate back to the host, it is that one pass, as before. Each value is `value_fn`'s of that observation
+    where it terminated, the value is not used (no bootstrap). Two passes of `num_envs` rows remain: the last step's
+    next observations, and the truncations' pre-reset observations, gathered (a time limit of at least T steps
+    allows one per env). A rollout with more truncations than envs (short time limits) takes one pass over every
+    next observation instead (a branch, `uniform_cond`). Under the "gpu" strategy, where a branch reads its
+    predicate back to the host, it is that one pass, as before. Each value is `value_fn`'s of that observation
     whichever way it comes (to float rounding)."""
-    if strategy.is_gpu():
-        return value_fn(params, transitions.next_obs)
-    later = jnp.concatenate([acted_values[1:], value_fn(params, last_obs)[None]])
-    truncated = jnp.logical_and(transitions.done, jnp.logical_not(transitions.terminated))
-    operands = (params, truncated, later, transitions.next_obs)
 
-    def every(params: Any, truncated: jax.Array, later: jax.Array, next_obs: jax.Array) -> jax.Array:
-        return jnp.where(truncated, value_fn(params, next_obs), later)
+    def every(params: Any, truncated: jax.Array, acted_values: jax.Array, next_obs: jax.Array) -> jax.Array:
+        return value_fn(params, next_obs)
 
-    def gathered(params: Any, truncated: jax.Array, later: jax.Array, next_obs: jax.Array) -> jax.Array:
+    def gathered(params: Any, truncated: jax.Array, acted_values: jax.Array, next_obs: jax.Array) -> jax.Array:
+        later = jnp.concatenate([acted_values[1:], value_fn(params, next_obs[-1])[None]])
         flat = truncated.reshape(-1)
         rows = jnp.nonzero(flat, size=truncated.shape[-1], fill_value=flat.size)[0]  # padding: past the end
         obs = next_obs.reshape(-1, *next_obs.shape[2:]).at[rows].get(mode="fill", fill_value=0)
         fresh = value_fn(params, obs)
         return later.reshape(-1).at[rows].set(fresh, mode="drop").reshape(later.shape)  # the padding dropped
 
+    truncated = jnp.logical_and(transitions.done, jnp.logical_not(transitions.terminated))
+    operands = (params, truncated, acted_values, transitions.next_obs)
+    if strategy.is_gpu():
+        return every(*operands)
     return uniform_cond(truncated.sum() > truncated.shape[-1], every, gathered, *operands)
 
 

@@ -110,10 +110,8 @@ def test_bootstrap_values_are_the_values_of_every_pre_reset_next_observation(tim
         env_params = setup.env_params.replace(env_params=inner)
         state = pqn.init(config, setup, jax.random.key(0))
         act = epsilon_greedy_act(setup, params, jnp.float32(0.3), greedy_values=True)
-        last, _, transitions, acted, _ = rollout(setup.env, env_params, state.envs, None, act, key, config.num_steps)
-        kept = bootstrap_values(
-            lambda p, obs: setup.network.apply(p, obs).max(-1), params, acted, transitions, last.obs
-        )
+        _, _, transitions, acted, _ = rollout(setup.env, env_params, state.envs, None, act, key, config.num_steps)
+        kept = bootstrap_values(lambda p, obs: setup.network.apply(p, obs).max(-1), params, acted, transitions)
         fresh = setup.network.apply(params, transitions.next_obs).max(-1)
         return kept, fresh, transitions
 
