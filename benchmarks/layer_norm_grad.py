@@ -2,8 +2,9 @@
 AVX-512 EPYC, and where PQN's time goes").
 
 Times the gradient step of PQN's CartPole-v0 network (the 64x64 preset: two Dense layers, each followed by
-LayerNorm and relu, then a Dense layer of 4 Q-values) on minibatches of 128 rows for 15 configurations under vmap
-(one device's share of the grid's 30), as a scanned loop of `--steps` steps on one CPU device, with:
+LayerNorm and relu, then a Dense layer of 4 Q-values; `--hidden 128 128` for PQN's default, its Acrobot-v1 width)
+on minibatches of 128 rows for 15 configurations under vmap (one device's share of the grid's 30), as a scanned
+loop of `--steps` steps on one CPU device, with:
 
 - flax's `nn.LayerNorm` (what amjax ran before 2026-12-07);
 - amjax's `networks.LayerNorm`, with a hand-written gradient (`jax.custom_vjp`: two-pass statistics, and the
@@ -17,6 +18,7 @@ touches them all; the harness keeps the records (`benchmarks/results/layer_norm_
 the `.md` beside it).
 
     python benchmarks/layer_norm_grad.py
+    python benchmarks/layer_norm_grad.py --hidden 128 128
 """
 
 from __future__ import annotations
@@ -39,17 +41,19 @@ if not __package__:  # run as a file: the repository importable, for `benchmarks
 from amjax.agents.networks import LayerNorm  # noqa: E402
 from benchmarks import harness  # noqa: E402
 
-CONFIGS, ROWS, OBS, ACTIONS, HIDDEN = 15, 128, 5, 4, (64, 64)  # CartPole-v0 with the flag: 5 inputs, 2 x 2 actions
+CONFIGS, ROWS, OBS, ACTIONS = 15, 128, 5, 4  # CartPole-v0 with the flag: 5 inputs, 2 x 2 actions
+HIDDEN = (64, 64)  # PQN's CartPole-v0 preset; --hidden sets another
 
 NORMS = {"flax nn.LayerNorm": nn.LayerNorm, "hand-written gradient (amjax)": LayerNorm, "none": None}
 
 
 class QNetwork(nn.Module):
     norm: type[nn.Module] | None
+    hidden: tuple[int, ...] = HIDDEN
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        for width in HIDDEN:
+        for width in self.hidden:
             x = nn.Dense(width)(x)
             x = nn.relu(self.norm()(x) if self.norm else x)
         return nn.Dense(ACTIONS)(x)
@@ -70,9 +74,11 @@ def check_gradients() -> float:
     return max(float(jnp.abs(a - b).max()) for a, b in zip(grads(nn.LayerNorm), grads(LayerNorm), strict=True))
 
 
-def compile_steps(norm: type[nn.Module] | None, steps: int) -> tuple[float, Callable[[], Any]]:
+def compile_steps(
+    norm: type[nn.Module] | None, steps: int, hidden: tuple[int, ...] = HIDDEN
+) -> tuple[float, Callable[[], Any]]:
     """(compile seconds, a call that runs `steps` gradient steps to the end)."""
-    network = QNetwork(norm)
+    network = QNetwork(norm, tuple(hidden))
     keys = jax.random.split(jax.random.PRNGKey(1), CONFIGS)
     obs = jax.random.normal(jax.random.PRNGKey(2), (CONFIGS, ROWS, OBS))
     params = jax.vmap(network.init)(keys, obs)
@@ -91,12 +97,12 @@ def compile_steps(norm: type[nn.Module] | None, steps: int) -> tuple[float, Call
     return compile_s, lambda: jax.block_until_ready(compiled(params, obs))
 
 
-def run_case(steps: int, repeats: int) -> dict[str, Any]:
+def run_case(steps: int, repeats: int, hidden: tuple[int, ...] = HIDDEN) -> dict[str, Any]:
     """In the child: the gradients checked, then every variant compiled and timed in turn."""
     difference = check_gradients()
     if difference > 1e-4:
         raise SystemExit(f"amjax's LayerNorm's gradients differ from flax's by {difference:.2e}")
-    programs = {name: compile_steps(norm, steps) for name, norm in NORMS.items()}
+    programs = {name: compile_steps(norm, steps, tuple(hidden)) for name, norm in NORMS.items()}
     best = dict.fromkeys(NORMS, np.inf)
     for _ in range(repeats):  # the variants in turn, so a noisy spell on the machine touches them all
         for name, (_, run) in programs.items():
@@ -122,7 +128,8 @@ def render(runs: list[dict[str, Any]]) -> str:
             none = next(v["step_us"] for v in case["variants"] if v["layer_norm"] == "none")
             parts.append(
                 f"# LayerNorm in PQN's gradient step on CPU ({run['date'][:10]})\n\n"
-                f"{CONFIGS} configurations x {ROWS} rows under vmap, hidden {HIDDEN}, one CPU device, "
+                f"{CONFIGS} configurations x {ROWS} rows under vmap, hidden {tuple(settings.get('hidden', HIDDEN))}, "
+                "one CPU device, "
                 f"{settings['steps']:,} steps per timed run, the best of {settings['repeats']} runs taken in turn; "
                 f"the hand-written gradients agree with flax's to {case['gradient_difference']:.1e}. "
                 f"{harness.describe(run)}\n\n"
@@ -150,15 +157,22 @@ def main(argv: list[str] | None = None) -> int:
         help="results file to append to (default: benchmarks/results/layer_norm_grad_<date>_<machine>.jsonl; the "
         "markdown table is written beside it)",
     )
+    parser.add_argument(
+        "--hidden",
+        type=int,
+        nargs="+",
+        default=list(HIDDEN),
+        help="the hidden layers' widths (default: 64 64, PQN's CartPole-v0 preset; 128 128 is PQN's default)",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    for name, value in (("--steps", args.steps), ("--repeats", args.repeats)):
+    for name, value in (("--steps", args.steps), ("--repeats", args.repeats), *(("--hidden", h) for h in args.hidden)):
         if value < 1:
             parser.error(f"{name}: got {value}; allowed values: integers >= 1")
     if args.child:
         harness.child_result(run_case(**json.loads(args.child)))
         return 0
-    case = {"steps": args.steps, "repeats": args.repeats}
+    case = {"steps": args.steps, "repeats": args.repeats, "hidden": list(args.hidden)}
     harness.run_cases("layer_norm_grad", harness.settings_of(args), args.out, __file__, [case], render)
     return 0
 

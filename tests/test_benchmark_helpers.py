@@ -229,3 +229,21 @@ def test_layer_norm_grad_checks_amjax_layer_norm_against_flax():
 
     assert layer_norm_grad.NORMS["hand-written gradient (amjax)"] is LayerNorm
     assert layer_norm_grad.check_gradients() < 1e-5
+
+
+def test_layer_norm_grad_times_the_widths_asked_for(capsys):
+    """`--hidden` sets the timed network's widths (a bad width is refused before any case runs)."""
+    import jax
+
+    from benchmarks import layer_norm_grad
+
+    network = layer_norm_grad.QNetwork(None, (8, 8, 8))
+    params = network.init(jax.random.PRNGKey(0), jax.numpy.zeros((2, layer_norm_grad.OBS)))["params"]
+    assert [params[f"Dense_{i}"]["kernel"].shape[1] for i in range(4)] == [8, 8, 8, layer_norm_grad.ACTIONS]
+    compile_s, run = layer_norm_grad.compile_steps(layer_norm_grad.LayerNorm, 2, (8, 8, 8))
+    assert compile_s > 0
+    run()
+    with pytest.raises(SystemExit) as exit_info:
+        layer_norm_grad.main(["--hidden", "64", "0"])
+    assert exit_info.value.code == 2
+    assert "--hidden: got 0" in capsys.readouterr().err
