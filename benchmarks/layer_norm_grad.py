@@ -102,7 +102,7 @@ def run_case(steps: int, repeats: int, hidden: tuple[int, ...] = HIDDEN) -> dict
     difference = check_gradients()
     if difference > 1e-4:
         raise SystemExit(f"amjax's LayerNorm's gradients differ from flax's by {difference:.2e}")
-    programs = {name: compile_steps(norm, steps, tuple(hidden)) for name, norm in NORMS.items()}
+    programs = {name: compile_steps(norm, steps, hidden) for name, norm in NORMS.items()}
     best = dict.fromkeys(NORMS, np.inf)
     for _ in range(repeats):  # the variants in turn, so a noisy spell on the machine touches them all
         for name, (_, run) in programs.items():

@@ -1,4 +1,5 @@
-"""PPO and Dueling Double DQN: scanned maths vs slow references, determinism, vmapped == alone, divergence."""
+"""PPO and Dueling Double DQN: scanned maths vs slow references, determinism, vmapped == alone, divergence; the
+measurement options (instruments, the factored head, cost-conditioning) of every agent that has them."""
 
 from __future__ import annotations
 
@@ -13,10 +14,14 @@ from amjax.agents import (
     ALGORITHMS,
     DQN,
     PPO,
+    PQN,
+    PQN_RNN,
     DQNConfig,
     DRQNConfig,
     PPOConfig,
     PPORNNConfig,
+    PQNConfig,
+    PQNRNNConfig,
     agent_of,
     stack_configs,
     training_env,
@@ -45,7 +50,21 @@ TINY = {
 TINY["ppo-box"] = PPOConfig(
     env_id="Pendulum-v1", total_timesteps=2048, eval_every=1024, num_envs=4, num_steps=64, eval_episodes=2, hidden=(16,)
 )
-ALGOS = {"ppo": PPO, "dqn": DQN, "ppo-box": PPO}
+# PQN and recurrent PQN, sized so that 2 x 2 minibatch steps per update still learn the cost input in 4,096 steps.
+TINY["pqn"] = PQNConfig(
+    total_timesteps=4096, eval_every=2048, num_envs=4, num_steps=32, num_minibatches=2, hidden=(32,), eval_episodes=2
+)
+TINY["pqn-rnn"] = PQNRNNConfig(
+    total_timesteps=4096,
+    eval_every=2048,
+    num_envs=4,
+    num_steps=32,
+    num_minibatches=2,
+    hidden=(16,),
+    rnn_size=8,
+    eval_episodes=2,
+)
+ALGOS = {"ppo": PPO, "dqn": DQN, "ppo-box": PPO, "pqn": PQN, "pqn-rnn": PQN_RNN}
 
 
 def slow_gae(rewards, values, next_values, terminated, done, gamma, lam):
@@ -169,22 +188,27 @@ def test_train_group_equals_all_at_once(name, assert_batch_equals_alone, trainin
     assert not np.array_equal(grouped.columns()["loss"][0], grouped.columns()["loss"][1])
 
 
-@pytest.mark.parametrize("name", ["dqn", "ppo-box"])
+@pytest.mark.parametrize("name", ["dqn", "ppo-box", "pqn", "pqn-rnn"])
 @pytest.mark.slow
 def test_instrument_prices_vmap_equals_alone(name, assert_batch_equals_alone):
     """Instruments' prices are traced: a batch of prices is one program, config i in it equals config i alone
-    (CartPole's cart and pole under Dueling DQN's factored head; Pendulum's angle and rate, two Bernoulli measure
-    entries)."""
+    (CartPole's cart and pole under the Q-learners' factored head, one advantage per mask; Pendulum's angle and
+    rate, two Bernoulli measure entries)."""
     if name == "ppo-box":
         base = TINY[name].replace(instruments=((0, 1), (2,)))
     else:
         base = TINY[name].replace(instruments="default", measure_head="factored")
     configs = [base.replace(cost=c, instrument_costs=p) for c, p in [(0.0, (0.05, 0.3)), (0.1, (0.3, 0.0))]]
-    rows, _ = assert_batch_equals_alone(ALGOS[name], configs, jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
+    rows, states = assert_batch_equals_alone(ALGOS[name], configs, jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
     assert np.all(np.isfinite(rows.columns()["loss"]))
+    if name != "ppo-box":
+        params = states[0].best_params["params"]
+        head = params.get("head", params)  # a recurrent network keeps its head in a submodule
+        assert "control_advantage" in head
+        assert head["measure_advantage"]["kernel"].shape[-1] == 4  # 2 instruments: 4 masks
 
 
-@pytest.mark.parametrize("name", ["dqn", "ppo"])
+@pytest.mark.parametrize("name", ["dqn", "ppo", "pqn"])
 @pytest.mark.slow
 def test_cost_conditioned_runs(name, assert_batch_equals_alone):
     """A cost-conditioned run's range is traced: a batch of ranges is one program, config i in it equals config i
@@ -216,6 +240,23 @@ def test_cost_conditioned_runs(name, assert_batch_equals_alone):
         saved.actor()
     with pytest.raises(ValueError, match="not cost-conditioned"):
         SavedPolicy(agent_of(TINY[name]), TINY[name], states[0].best_params).actor(cost=0.1)
+
+
+@pytest.mark.slow
+def test_cost_conditioned_recurrent_pqn(assert_batch_equals_alone):
+    """A cost-conditioned recurrent PQN: a batch of cost ranges equals its configurations alone, and the trained
+    network's greedy action at an episode's first step changes with the cost it sees."""
+    base = TINY["pqn-rnn"].replace(cost_conditioned=True)
+    configs = [base.replace(cost_low=lo, cost_high=hi).validate() for lo, hi in [(0.0, 1.0), (0.2, 0.2)]]
+    _, states = assert_batch_equals_alone(PQN_RNN, configs, jnp.stack([jax.random.PRNGKey(s) for s in (3, 1)]))
+    setup = PQN_RNN.setup(configs[0])
+    obs = jax.random.uniform(jax.random.key(0), (256, 6), minval=-0.2, maxval=0.2).at[:, 4].set(0.0)  # stale
+    carry, first = jnp.zeros((256, base.rnn_size)), jnp.ones(256, bool)
+    greedy = [
+        np.asarray(setup.network.apply(states[0].best_params, carry, obs.at[:, -1].set(seen), first)[1]).argmax(-1)
+        for seen in (-1.0, 1.0)
+    ]
+    assert np.any(greedy[0] != greedy[1]), "the greedy action ignores the cost input"
 
 
 @pytest.mark.parametrize("name", ["ppo", "dqn"])

@@ -19,7 +19,6 @@ from amjax.agents import (
     PQN_RNN,
     PQNConfig,
     PQNRNNConfig,
-    agent_of,
     load_policy,
     pqn,
     pqn_rnn,
@@ -30,7 +29,6 @@ from amjax.agents import (
 from amjax.agents.pqn import q_lambda_targets
 from amjax.agents.q_learning import bootstrap_values, epsilon_greedy_act, recurrent_epsilon_greedy
 from amjax.agents.rollout import rollout
-from amjax.agents.saved import SavedPolicy
 from amjax.agents.training import evaluate
 
 T, E = 7, 3  # one shape: the jitted targets compile once for every example
@@ -147,69 +145,6 @@ def test_vmap_equals_alone_and_seeds_differ(assert_batch_equals_alone, training_
     _, other = alone(config, keys[1])
     assert np.array_equal(np.asarray(first.loss), np.asarray(again.loss))
     assert not np.array_equal(np.asarray(first.loss), np.asarray(other.loss))
-
-
-RNN_TINY = PQNRNNConfig(
-    total_timesteps=2048,
-    eval_every=1024,
-    num_envs=4,
-    num_steps=32,
-    num_minibatches=2,
-    hidden=(16,),
-    rnn_size=8,
-    eval_episodes=2,
-)
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("algo, base", [(PQN, TINY), (PQN_RNN, RNN_TINY)], ids=["pqn", "pqn-rnn"])
-def test_factored_head_with_instruments_vmap_equals_alone(algo, base, assert_batch_equals_alone):
-    """The factored measure head over CartPole's two instruments: traced prices, a batch of them is one program and
-    config i in it equals config i alone; the network's outputs are the joint (control, mask) Q-values."""
-    base = base.replace(instruments="default", measure_head="factored")
-    configs = [base.replace(cost=c, instrument_costs=p) for c, p in [(0.0, (0.05, 0.3)), (0.1, (0.3, 0.0))]]
-    rows, states = assert_batch_equals_alone(algo, configs, jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
-    assert np.all(np.isfinite(rows.columns()["loss"]))
-    heads = states[0].best_params["params"]
-    heads = heads.get("head", heads)  # recurrent PQN keeps its head in a submodule
-    assert {"control_advantage", "measure_advantage"} <= set(heads)
-    assert heads["measure_advantage"]["kernel"].shape[-1] == 4  # 2 instruments: 4 masks
-
-
-@pytest.mark.slow
-def test_cost_conditioned_pqn(assert_batch_equals_alone):
-    """A cost-conditioned PQN: a batch of cost ranges is one program, config i in it equals config i alone; the
-    trained greedy action changes with the cost it sees, and the NumPy actor at cost c appends that cost itself."""
-    base = TINY.replace(cost_conditioned=True, total_timesteps=4096, eval_every=2048)
-    configs = [base.replace(cost_low=lo, cost_high=hi).validate() for lo, hi in [(0.0, 1.0), (0.2, 0.2)]]
-    _, states = assert_batch_equals_alone(PQN, configs, jnp.stack([jax.random.PRNGKey(s) for s in (3, 1)]))
-    setup = PQN.setup(configs[0])
-    obs = jax.random.uniform(jax.random.key(0), (256, 6), minval=-0.2, maxval=0.2).at[:, 4].set(0.0)  # stale
-    params = states[0].best_params
-    greedy = [np.asarray(setup.network.apply(params, obs.at[:, -1].set(seen))).argmax(-1) for seen in (-1.0, 1.0)]
-    assert np.any(greedy[0] != greedy[1]), "the greedy action ignores the cost input"
-    saved = SavedPolicy(agent_of(configs[0]), configs[0], states[0].best_params)
-    for seen, cost in ((-1.0, 0.0), (1.0, 1.0)):
-        actor = saved.actor(cost=cost)
-        got = [actor(np.asarray(o[:-1])) for o in obs.at[:, -1].set(seen)[:16]]
-        np.testing.assert_array_equal(got, greedy[seen > 0][:16])
-
-
-@pytest.mark.slow
-def test_cost_conditioned_recurrent_pqn(assert_batch_equals_alone):
-    """A cost-conditioned recurrent PQN: a batch of cost ranges equals its configurations alone, and the trained
-    network's greedy action at an episode's first step changes with the cost it sees."""
-    base = RNN_TINY.replace(cost_conditioned=True, total_timesteps=4096, eval_every=2048)
-    configs = [base.replace(cost_low=lo, cost_high=hi).validate() for lo, hi in [(0.0, 1.0), (0.2, 0.2)]]
-    _, states = assert_batch_equals_alone(PQN_RNN, configs, jnp.stack([jax.random.PRNGKey(s) for s in (3, 1)]))
-    setup = PQN_RNN.setup(configs[0])
-    obs = jax.random.uniform(jax.random.key(0), (256, 6), minval=-0.2, maxval=0.2).at[:, 4].set(0.0)  # stale
-    carry, first = jnp.zeros((256, RNN_TINY.rnn_size)), jnp.ones(256, bool)
-    greedy = [
-        np.asarray(setup.network.apply(states[0].best_params, carry, obs.at[:, -1].set(seen), first)[1]).argmax(-1)
-        for seen in (-1.0, 1.0)
-    ]
-    assert np.any(greedy[0] != greedy[1]), "the greedy action ignores the cost input"
 
 
 def test_bad_fields_name_themselves():
