@@ -4,7 +4,9 @@ Under ``vmap`` a ``lax.cond`` with a batched predicate becomes a select that com
 member. The functions here are ``custom_vmap`` rules that keep the work proportional to what the members need:
 
 - ``uniform_cond``: a branch that computes only the branches some member takes (both, then a select, only where
-  members disagree), at every level of nested ``vmap``; ``cheap_cond``: the same on CPU, a select on a GPU;
+  members disagree), at every level of nested ``vmap``;
+- ``update_where``: a state updated where a predicate holds and kept where not, laid out so that XLA updates it in
+  place (no copy of the state per call: a learning step's parameters and optimiser state, a replay buffer);
 - ``select_compacted``: per member ``expensive`` where a predicate holds and ``cheap`` elsewhere, running
   ``expensive`` only on the members that need it, gathered in chunks of a smaller batch;
 - ``in_groups``: a batch run in cache-sized groups instead of all at once (under the ``"cpu"`` strategy only:
@@ -132,15 +134,36 @@ def uniform_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *oper
     return _cond_with_vmap_rule(true_fun, false_fun, batched)(pred, *operands)
 
 
-def cheap_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *operands: Any) -> Any:
-    """``lax.cond(pred, true_fun, false_fun, *operands)`` for branches a batch can afford to compute for every
-    member: `uniform_cond` under the ``"cpu"`` strategy; under ``"gpu"`` both branches and a select (no
-    conditional: a GPU would read its predicate back to the host, a round trip that costs more than the branch
-    it saves)."""
-    if strategy.is_gpu():
-        on_true, on_false = true_fun(*operands), false_fun(*operands)
-        return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
-    return uniform_cond(pred, true_fun, false_fun, *operands)
+def update_where(pred: jax.Array, update: Callable, state: Any, *args: Any) -> Any:
+    """``update(state, *args)`` (a new state of the same structure) where ``pred`` holds, else ``state`` unchanged:
+    ``lax.cond(pred, update, keep, state, *args)`` that stays a branch under ``vmap`` and updates in place.
+
+    With a batched predicate, one conditional runs ``update`` for the batch when every member takes it (else keeps
+    the state), then a loop of at most one iteration updates and selects per member when they disagree. A
+    `uniform_cond` with a pass-through branch copies what passes through: XLA compiles a conditional whose
+    branches disagree among several into fresh output buffers, which a loop-carried state (a learning step's
+    parameters and optimiser state, DRQN's replay buffer) then copies back into its own at every iteration. Here
+    the conditional is all-or-nothing and the disagreeing case is a loop, which XLA updates in place; a batch that
+    agrees (every sweep: its configurations count the same env steps) pays neither the copy nor a select. Outer
+    ``vmap`` levels reduce their predicates the same way.
+    """
+    update = _traced(update, state, *args)
+
+    def keep(state: Any, *_: Any) -> Any:
+        return state
+
+    def batched(pred: jax.Array, state: Any, *args: Any) -> Any:
+        update_all = jax.vmap(update)
+        every = jnp.all(pred)
+        state = update_where(every, lambda state, *args: update_all(state, *args), state, *args)
+
+        def disagreeing(carry: tuple[jax.Array, Any]) -> tuple[jax.Array, Any]:
+            _, state = carry  # unchanged by the conditional above, which kept it
+            return jnp.bool_(False), _select(pred, update_all(state, *args), state)
+
+        return jax.lax.while_loop(lambda carry: carry[0], disagreeing, (jnp.any(pred) & ~every, state))[1]
+
+    return _cond_with_vmap_rule(update, keep, batched)(pred, state, *args)
 
 
 def select_compacted(
@@ -255,4 +278,4 @@ def _grouped(fun: Callable, group_size: int, keep_unbatched: bool) -> Callable:
     return grouped
 
 
-__all__ = ["cheap_cond", "in_groups", "select_compacted", "uniform_cond", "varying_axes"]
+__all__ = ["in_groups", "select_compacted", "uniform_cond", "update_where", "varying_axes"]

@@ -3,7 +3,7 @@ process, timed in alternation, then each profiled for one run; device time is su
 
     python benchmarks/gpu_profile.py --agent ppo --configs 1024 --steps 51200  # benchmarks/results/, .jsonl and .md
     python benchmarks/gpu_profile.py --agent dqn --configs 4 --steps 2500 --rounds 1 --out /tmp/p.jsonl  # a smoke run
-    python benchmarks/gpu_profile.py --agent dqn --configs 4096 --steps 2500 --variants target-cond  # an experiment
+    python benchmarks/gpu_profile.py --agent dqn --configs 4096 --steps 2500 --variants pass-through  # a comparison
 
 Both implementations are compiled and timed in this one process on purpose (the same device state, rounds
 alternating, so that a slower or busier device moves both), so this script runs no child processes: it uses
@@ -39,19 +39,47 @@ from benchmarks.throughput.cases import _default_buffer, _round_steps, _steps_pe
 from benchmarks.throughput.timing import interleaved  # noqa: E402
 
 
-def _target_cond() -> list[tuple[Any, str, Any]]:
-    from amjax.agents import q_learning
+def _pass_through() -> list[tuple[Any, str, Any]]:
+    """Dueling DQN's and DRQN's learning step and target update as before `batching.update_where`."""
+    import jax.numpy as jnp
+    import optax
+
+    from amjax import strategy
+    from amjax.agents import dqn, drqn
     from amjax.batching import uniform_cond
 
-    return [(q_learning, "cheap_cond", uniform_cond)]
+    def learn_or_wait(learning, learn, *operands):
+        return uniform_cond(
+            learning, learn, lambda params, opt_state, *_: (params, opt_state, jnp.float32(0)), *operands
+        )
+
+    def update_target(config, sync, params, target_params):
+        if strategy.is_gpu():
+            new = optax.incremental_update(params, target_params, config.tau)
+            return jax.tree.map(lambda a, b: jnp.where(sync, a, b), new, target_params)
+        return uniform_cond(
+            sync,
+            lambda tau, params, target: optax.incremental_update(params, target, tau),
+            lambda tau, params, target: target,
+            config.tau,
+            params,
+            target_params,
+        )
+
+    return [
+        (module, name, value)
+        for module in (dqn, drqn)
+        for name, value in (("learn_or_wait", learn_or_wait), ("update_target", update_target))
+    ]
 
 
 # name -> (what it changes, the (module, attribute, value) patches that make it)
 VARIANTS = {
-    "target-cond": (
-        "the Q-learners' target update as `uniform_cond` (a conditional) under every strategy, not `cheap_cond`'s "
-        "select under the GPU one",
-        _target_cond,
+    "pass-through": (
+        "the Q-learners' learning step as a `uniform_cond` whose waiting branch passes the parameters and optimiser "
+        "state through (copied back into the loop's state at every update) and the target update as a select under "
+        "the GPU strategy: the layout before `update_where`",
+        _pass_through,
     ),
 }
 

@@ -1,7 +1,9 @@
 """`amjax.batching`: branches and compacted selects give what `lax.cond` / `jnp.where` give, at every vmap level;
-`in_groups` gives what `vmap` gives."""
+`update_where` updates a loop's state in place; `in_groups` gives what `vmap` gives."""
 
 from __future__ import annotations
+
+import re
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from jax.sharding import Mesh, PartitionSpec
 
-from amjax.batching import in_groups, select_compacted, uniform_cond
+from amjax.batching import in_groups, select_compacted, uniform_cond, update_where
 
 
 def expensive(x, y):
@@ -118,6 +120,71 @@ def test_uniform_cond_equals_cond_per_member(mask, seed):
     jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), got, want)
 
 
+def update(state, scale):
+    return {"w": jnp.tanh(state["w"]) * scale, "n": state["n"] + 1}
+
+
+def updated_where(pred, state, scale):
+    return jax.tree.map(lambda a, b: jnp.where(pred, a, b), update(state, scale), state)
+
+
+@settings(max_examples=30, deadline=None)
+@given(mask=st.lists(st.booleans(), min_size=12, max_size=12), seed=st.integers(0, 2**31 - 1))
+def test_update_where_equals_cond_per_member(mask, seed):
+    """Two vmap levels (3 x 4 members, an argument unbatched at the inner one): all, some or none of a row take the
+    update."""
+    pred = jnp.array(mask).reshape(3, 4)
+    state = {"w": jax.random.normal(jax.random.PRNGKey(seed), (3, 4, 2)), "n": jnp.zeros((3, 4), jnp.int32)}
+    scale = jnp.array([0.5, -1.0, 2.0])
+
+    def member(p, s, c):
+        return update_where(p, update, s, c)
+
+    got = jax.jit(jax.vmap(jax.vmap(member, (0, 0, None))))(pred, state, scale)
+    want = jax.vmap(jax.vmap(updated_where, (0, 0, None)))(pred, state, scale)
+    jax.tree.map(np.testing.assert_array_equal, got, want)
+    unbatched = jax.jit(member)(pred[0, 0], jax.tree.map(lambda x: x[0, 0], state), scale[0])
+    jax.tree.map(np.testing.assert_array_equal, unbatched, jax.tree.map(lambda x: x[0, 0], want))
+
+
+def _loop_body_copies(compiled_text: str, shape: str, marker: str) -> int:
+    """Copies of an array of `shape` (e.g. "f32[8,32,32]") in the body of the loop whose state holds `marker` (an
+    array type only that loop carries)."""
+    loop = next(line for line in compiled_text.splitlines() if " while(" in line and marker in line.split(" while(")[0])
+    body = re.search(r"body=%?([\w.\-]+)", loop).group(1)
+    text = compiled_text[compiled_text.index(f"\n%{body} ") :].split("\n}\n", 1)[0]
+    return len(re.findall(rf"= {re.escape(shape)}{{[\d,]*}} copy\(", text))
+
+
+def test_update_where_keeps_a_loop_state_in_place():
+    """A vmapped loop whose state (a learning step's parameters, a replay buffer) goes through `update_where` at
+    every iteration compiles without copying it back into the loop's state; a `uniform_cond` whose other branch
+    passes the state through copies it each iteration (what the Q-learners' updates did: issue 58)."""
+
+    def program(branch):
+        def member(state, starts):
+            def step(state, i):
+                return branch(i >= starts, state), None
+
+            return jax.lax.scan(step, state, jnp.arange(16))[0]
+
+        return jax.jit(jax.vmap(member))
+
+    def in_place(pred, state):
+        return update_where(pred, lambda state: jax.tree.map(lambda x: jnp.tanh(x) * 0.5, state), state)
+
+    def passed_through(pred, state):
+        return uniform_cond(pred, lambda state: jax.tree.map(lambda x: jnp.tanh(x) * 0.5, state), lambda s: s, state)
+
+    state, starts = {"w": jnp.ones((8, 32, 32)), "b": jnp.ones((8, 32))}, jnp.full((8,), 4)
+    texts = {f.__name__: program(f).lower(state, starts).compile().as_text() for f in (in_place, passed_through)}
+    # The scan's loop alone carries its steps' indices, s32[16].
+    assert _loop_body_copies(texts["in_place"], "f32[8,32,32]", "s32[16]") == 0
+    assert _loop_body_copies(texts["passed_through"], "f32[8,32,32]", "s32[16]") > 0
+    want = jax.tree.map(lambda x: jax.lax.fori_loop(0, 12, lambda _, x: jnp.tanh(x) * 0.5, x), state)
+    jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), program(in_place)(state, starts), want)
+
+
 @pytest.mark.parametrize("keep_unbatched", [False, True])
 @pytest.mark.parametrize("batch", [3, 4, 10])
 def test_in_groups_equals_vmap(batch, keep_unbatched):
@@ -147,7 +214,7 @@ def test_in_groups_keep_unbatched_compiles_small_batches_as_plain_vmap():
 def test_functions_are_traced_once_under_nested_vmap():
     """Each helper's functions run their Python once per trace: the batching rules replay the recorded jaxpr
     (LunarLander's step nests them, and a second trace of each level was a third of its compile's tracing)."""
-    calls = {"expensive": 0, "cheap": 0, "true": 0, "false": 0, "grouped": 0}
+    calls = {"expensive": 0, "cheap": 0, "true": 0, "false": 0, "update": 0, "grouped": 0}
 
     def counted(name, fun):
         def wrapped(*args):
@@ -159,7 +226,8 @@ def test_functions_are_traced_once_under_nested_vmap():
     def member(pred, x, y):
         a = select_compacted(pred, counted("expensive", expensive), counted("cheap", cheap), x, y)
         b = uniform_cond(pred, counted("true", expensive), counted("false", cheap), x, y)
-        return a, b
+        c = update_where(pred, counted("update", update), {"w": x, "n": jnp.int32(0)}, y)
+        return a, b, c
 
     pred = jnp.arange(12).reshape(3, 4) % 3 == 0
     x, y = jax.random.normal(jax.random.PRNGKey(0), (2, 3, 4))
@@ -167,8 +235,10 @@ def test_functions_are_traced_once_under_nested_vmap():
     got = jax.jit(jax.vmap(jax.vmap(step)))(pred, x, y)
     assert calls == dict.fromkeys(calls, 1)
     want = jax.vmap(jax.vmap(reference))(pred, x, y)
-    for value in got:
+    for value in got[:2]:
         jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), value, want)
+    state = {"w": x, "n": jnp.zeros((3, 4), jnp.int32)}
+    jax.tree.map(np.testing.assert_array_equal, got[2], jax.vmap(jax.vmap(updated_where))(pred, state, y))
 
 
 def test_helpers_hold_shard_maps_varying_axes_check():

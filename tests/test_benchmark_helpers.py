@@ -117,33 +117,35 @@ def test_profile_on_a_cpu_leaves_loops_and_branches_out():
 
 
 def test_gpu_profile_variant_changes_the_program_it_names():
-    """benchmarks/gpu_profile.py --variants target-cond: under the GPU strategy the Q-learners' target update
-    becomes a conditional (one more than the learning step's), and the patch is gone after the block."""
+    """benchmarks/gpu_profile.py --variants pass-through: under the GPU strategy the Q-learners' update goes back to
+    a learning step whose waiting branch passes the state through (a three-way conditional, no loop) and a target
+    update that selects (no conditional); the patch is gone after the block."""
     import jax
 
     from amjax import strategy
-    from amjax.agents import DQN, DQNConfig, q_learning, stack_configs
+    from amjax.agents import DQN, DQNConfig, dqn, stack_configs
     from benchmarks import gpu_profile
 
     configs = [DQNConfig(cost=c, num_envs=2, buffer_size=64, learning_starts=8).validate() for c in (0.1, 0.2)]
     stacked = stack_configs(configs)
 
-    def conditionals() -> int:
+    def control_flow() -> tuple[int, int]:
         def update(config, key):
             setup = DQN.setup(configs[0])  # the static fields; the traced ones come from `config`
             return DQN.update(config, setup, DQN.init(config, setup, key))[0].target_params
 
         keys = jax.random.split(jax.random.PRNGKey(0), 2)
         text = jax.jit(jax.vmap(update)).lower(stacked, keys).as_text()
-        return text.count("stablehlo.case") + text.count("stablehlo.if")
+        return text.count("stablehlo.case") + text.count("stablehlo.if"), text.count("stablehlo.while")
 
-    cheap_cond = q_learning.cheap_cond
+    update_target = dqn.update_target
     with strategy.use("gpu"):
-        base = conditionals()
-        with gpu_profile.variant("target-cond"):
-            patched = conditionals()
-    assert patched == base + 1, (base, patched)
-    assert q_learning.cheap_cond is cheap_cond
+        (conds, loops) = control_flow()
+        with gpu_profile.variant("pass-through"):
+            (patched_conds, patched_loops) = control_flow()
+    # update_where: the learning step and the target update, each a conditional and a loop for disagreeing members.
+    assert (conds - patched_conds, loops - patched_loops) == (1, 2), (conds, loops, patched_conds, patched_loops)
+    assert dqn.update_target is update_target
 
 
 def test_replicate_time_says_what_a_timed_out_case_measured():

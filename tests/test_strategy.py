@@ -141,22 +141,6 @@ def test_trainers_compile_one_program_per_strategy(monkeypatch) -> None:
     np.testing.assert_allclose(out.test.costed_return, ref.test.costed_return, rtol=1e-3, atol=1e-3)
 
 
-@pytest.mark.parametrize("pred", [[True] * 3, [False, True, False]], ids=["all", "mixed"])
-def test_cheap_cond_is_a_select_under_gpu_and_a_branch_under_cpu(pred) -> None:
-    from amjax.batching import cheap_cond
-
-    pred, x = jnp.array(pred), jnp.arange(3.0)
-
-    def fun(pred, x):
-        return jax.vmap(lambda p, x: cheap_cond(p, lambda x: x + 10.0, lambda x: x * 2.0, x))(pred, x)
-
-    for name in strategy.STRATEGIES:
-        with strategy.use(name):
-            np.testing.assert_array_equal(fun(pred, x), jnp.where(pred, x + 10.0, x * 2.0))
-            jaxpr = _jaxpr(lambda *a: fun(*a), pred, x)
-        assert ("cond[" in jaxpr) == (name == "cpu")
-
-
 @pytest.mark.slow
 def test_a_sweep_compiles_for_the_strategy_of_its_caller(tmp_path, monkeypatch) -> None:
     """`run_sweep` compiles its batches on a background thread; a `strategy.use` block around it reaches them."""

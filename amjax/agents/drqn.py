@@ -59,7 +59,7 @@ from amjax.agents.replay import ReplayBuffer, sequence_add, sequence_init, seque
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
-from amjax.batching import uniform_cond
+from amjax.batching import update_where
 from amjax.validation import check_positive_int
 
 
@@ -296,7 +296,7 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
     env_steps = state.env_steps + config.steps_per_update()
 
     # 2. Gradient steps on sampled sequences, once learning has started (traced values are operands: see
-    #    `batching.uniform_cond`).
+    #    `batching.update_where`).
     def learn(params, opt_state, config, buffer, key_data):
         optimizer = make_optimizer(config)
 
@@ -324,12 +324,11 @@ def update(config: DRQNConfig, setup: Setup, state: DRQNState) -> tuple[DRQNStat
     #    cached target values follow it.
     sync = target_sync(config, learning, state.env_steps, env_steps)
     target_params = update_target(config, sync, params, state.target_params)
-    buffer = uniform_cond(
+    buffer = update_where(
         sync,
-        lambda target_params, buffer: refresh_target_values(config, setup.network, target_params, buffer),
-        lambda target_params, buffer: buffer,
-        target_params,
+        lambda buffer, target_params: refresh_target_values(config, setup.network, target_params, buffer),
         buffer,
+        target_params,
     )
 
     new_state = DRQNState(params, target_params, opt_state, buffer, envs, carry, pending, key_bits(key), env_steps)

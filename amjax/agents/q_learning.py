@@ -24,7 +24,7 @@ from amjax.agents.optim import clipped_adam
 from amjax.agents.rollout import EnvBatch, Transition
 from amjax.agents.setup import Setup
 from amjax.agents.training import Policy, greedy_policy
-from amjax.batching import cheap_cond, uniform_cond
+from amjax.batching import uniform_cond, update_where
 from amjax.validation import check_positive_int
 
 
@@ -286,16 +286,19 @@ def bootstrap_values(
     return uniform_cond(truncated.sum() > truncated.shape[-1], every, gathered, *operands)
 
 
-def learn_or_wait(learning: jax.Array, learn: Any, *operands: Any) -> tuple[Any, Any, jax.Array]:
-    """`learn(*operands) -> (params, opt_state, loss)` once learning has started; before, the params and optimiser
-    state of `operands[:2]` unchanged and a zero loss. A real branch in a vmapped sweep (`uniform_cond`: every
-    configuration of a batch starts learning at the same step), also on a GPU: a select there would run the
-    gradient steps before learning starts too (40% of the updates of a 2,500-step run; docs/gpu.md)."""
+def learn_or_wait(
+    learning: jax.Array, learn: Any, params: Any, opt_state: Any, *args: Any
+) -> tuple[Any, Any, jax.Array]:
+    """`learn(params, opt_state, *args) -> (params, opt_state, loss)` once learning has started; before, `params`
+    and `opt_state` unchanged and a zero loss. A real branch in a vmapped sweep, also on a GPU (`update_where`:
+    every configuration of a batch starts learning at the same step), that updates them in place: a select would
+    run the gradient steps before learning starts too (40% of the updates of a 2,500-step run; docs/gpu.md)."""
 
-    def wait(params: Any, opt_state: Any, *_: Any) -> tuple[Any, Any, jax.Array]:
-        return params, opt_state, jnp.float32(0.0)
+    def learn_state(state: tuple[Any, Any, jax.Array], *args: Any) -> tuple[Any, Any, jax.Array]:
+        params, opt_state, _ = state
+        return learn(params, opt_state, *args)
 
-    return uniform_cond(learning, learn, wait, *operands)
+    return update_where(learning, learn_state, (params, opt_state, jnp.float32(0.0)), *args)
 
 
 def target_sync(
@@ -308,13 +311,12 @@ def target_sync(
 
 
 def update_target(config: QLearningConfig, sync: jax.Array, params: Any, target_params: Any) -> Any:
-    """The target network, blended with rate tau where `sync` (`target_sync`); on a GPU blended for every
-    configuration and selected (`cheap_cond`: no conditional, whose predicate the host would have to read)."""
-    return cheap_cond(
+    """The target network, blended with rate tau where `sync` (`target_sync`); a branch in a vmapped sweep too,
+    updated in place (`update_where`), as a plain implementation with one step counter does."""
+    return update_where(
         sync,
-        lambda tau, params, target: optax.incremental_update(params, target, tau),
-        lambda tau, params, target: target,
+        lambda target, tau, params: optax.incremental_update(params, target, tau),
+        target_params,
         config.tau,
         params,
-        target_params,
     )
