@@ -118,7 +118,7 @@ def update(config: DQNConfig, setup: Setup, state: DQNState) -> tuple[DQNState, 
     env_steps = state.env_steps + config.steps_per_update()
 
     # 2. Gradient steps on double-Q targets, once enough transitions are stored.
-    def learn(params, opt_state, config, target_params, samples):
+    def learn(params, opt_state, config, target_params, buffer, key_data):
         def loss_fn(params, sample):
             # Separate forward passes: one over [obs; next_obs] would double the backward pass's matmuls.
             q = network.apply(params, sample["obs"])
@@ -134,17 +134,14 @@ def update(config: DQNConfig, setup: Setup, state: DQNState) -> tuple[DQNState, 
             updates, opt_state = make_optimizer(config).update(grads, opt_state, params)
             return (optax.apply_updates(params, updates), opt_state), loss
 
+        keys = jax.random.split(fast_key(key_data), config.gradient_steps)
+        samples = jax.vmap(lambda k: replay_sample(buffer, k, config.batch_size))(keys)
         (params, opt_state), losses = jax.lax.scan(gradient_step, (params, opt_state), samples)
         return params, opt_state, losses.mean()
 
-    # The minibatches are drawn outside the branch: the buffer (megabytes per configuration) stays out of the
-    # conditional's operands, which XLA may copy.
-    samples = jax.vmap(lambda k: replay_sample(buffer, k, config.batch_size))(
-        jax.random.split(learn_key, config.gradient_steps)
-    )
     learning = env_steps >= config.learning_starts
     params, opt_state, loss = learn_or_wait(
-        learning, learn, state.params, state.opt_state, config, state.target_params, samples
+        learning, learn, state.params, state.opt_state, config, state.target_params, buffer, key_bits(learn_key)
     )
 
     # 3. Target network: blend with rate tau each time target_update_interval env steps pass.
