@@ -158,8 +158,8 @@ def update_where(pred: jax.Array, update: Callable, state: Any, *args: Any) -> A
         state = update_where(every, lambda state, *args: update_all(state, *args), state, *args)
 
         def disagreeing(carry: tuple[jax.Array, Any]) -> tuple[jax.Array, Any]:
-            _, state = carry  # unchanged by the conditional above, which kept it
-            return jnp.bool_(False), _select(pred, update_all(state, *args), state)
+            flag, state = carry  # the state unchanged by the conditional above, which kept it
+            return flag & False, _select(pred, update_all(state, *args), state)  # `&`: keeps shard_map's axes
 
         return jax.lax.while_loop(lambda carry: carry[0], disagreeing, (jnp.any(pred) & ~every, state))[1]
 

@@ -254,7 +254,8 @@ def test_helpers_hold_shard_maps_varying_axes_check():
     def member(pred, x, scale):
         a = select_compacted(pred, mixed, cheap, x, scale, min_chunk=1)
         b = uniform_cond(pred, mixed, cheap, x, scale)
-        return (a, b), in_groups(lambda x: x * scale, 4)(x)
+        c = update_where(pred, lambda state, scale: {"w": mixed(state["w"], scale)["b"]}, {"w": x}, scale)
+        return (a, b, c), in_groups(lambda x: x * scale, 4)(x)
 
     def per_device(pred, x):
         return jax.vmap(member, (0, 0, None))(pred, x, jnp.float32(0.5))
@@ -264,9 +265,10 @@ def test_helpers_hold_shard_maps_varying_axes_check():
     size = 32 * len(devices)
     pred = jnp.arange(size) % 3 == 0
     x = jax.random.normal(jax.random.PRNGKey(0), (size,))
-    (a, b), grouped = jax.jit(jax.shard_map(per_device, mesh=mesh, in_specs=spec, out_specs=spec))(pred, x)
+    (a, b, c), grouped = jax.jit(jax.shard_map(per_device, mesh=mesh, in_specs=spec, out_specs=spec))(pred, x)
     assert calls["expensive"] >= 2  # traced once, then again for the gathered rows
     want = {"a": jnp.where(pred, jnp.sin(x), x + 0.5), "b": jnp.where(pred, x * 0.5, x - 0.5)}
     for got in (a, b):
         jax.tree.map(lambda g, w: np.testing.assert_allclose(g, w, rtol=1e-6), got, want)
+    np.testing.assert_allclose(c["w"], jnp.where(pred, x * 0.5, x), rtol=1e-6)
     np.testing.assert_allclose(grouped, x * 0.5, rtol=1e-6)
