@@ -155,7 +155,7 @@ def update_where(pred: jax.Array, update: Callable, state: Any, *args: Any) -> A
     def batched(pred: jax.Array, state: Any, *args: Any) -> Any:
         update_all = jax.vmap(update)
         every = jnp.all(pred)
-        state = update_where(every, lambda state, *args: update_all(state, *args), state, *args)
+        state = update_where(every, update_all, state, *args)
 
         def disagreeing(carry: tuple[jax.Array, Any]) -> tuple[jax.Array, Any]:
             flag, state = carry  # the state unchanged by the conditional above, which kept it

@@ -170,11 +170,14 @@ def test_update_where_keeps_a_loop_state_in_place():
 
         return jax.jit(jax.vmap(member))
 
+    def halve_tanh(state):
+        return jax.tree.map(lambda x: jnp.tanh(x) * 0.5, state)
+
     def in_place(pred, state):
-        return update_where(pred, lambda state: jax.tree.map(lambda x: jnp.tanh(x) * 0.5, state), state)
+        return update_where(pred, halve_tanh, state)
 
     def passed_through(pred, state):
-        return uniform_cond(pred, lambda state: jax.tree.map(lambda x: jnp.tanh(x) * 0.5, state), lambda s: s, state)
+        return uniform_cond(pred, halve_tanh, lambda s: s, state)
 
     state, starts = {"w": jnp.ones((8, 32, 32)), "b": jnp.ones((8, 32))}, jnp.full((8,), 4)
     texts = {f.__name__: program(f).lower(state, starts).compile().as_text() for f in (in_place, passed_through)}
