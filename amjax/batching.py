@@ -21,12 +21,15 @@ trace of a vmapped step by about a third).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+from flax import struct
 from jax.extend.core import jaxpr_as_fun
 
 from amjax import strategy
@@ -68,9 +71,12 @@ def _broadcast(operands: Sequence[Any], batched: Sequence[Any], axis_size: int) 
     ]
 
 
-def _cond_with_vmap_rule(true_fun: Callable, false_fun: Callable, batched: Callable) -> Callable:
-    """``lax.cond(pred, true_fun, false_fun, *operands)`` whose vmap rule is ``batched(pred, *operands)``, called
-    with the vmapped axis in front of the predicate and of every operand leaf."""
+def _cond_with_vmap_rule(true_fun: Callable, false_fun: Callable, batched: Callable, lifted: Callable) -> Callable:
+    """``lax.cond(pred, true_fun, false_fun, *operands)`` whose vmap rule is ``batched(pred, *operands)`` for a
+    batched predicate and ``lifted(pred, *operands)`` for an unbatched one (a predicate every member shares: a
+    `shared_field` step counter's), both called with the vmapped axis in front of every operand leaf (and of the
+    predicate). ``lifted`` is the same helper over ``vmap``'s of the functions: one branch for the whole batch,
+    which an outer ``vmap`` batches by the helper's own rule again, not into a select."""
 
     @jax.custom_batching.custom_vmap
     def cond(pred, *operands):
@@ -79,8 +85,8 @@ def _cond_with_vmap_rule(true_fun: Callable, false_fun: Callable, batched: Calla
     @cond.def_vmap
     def rule(axis_size, in_batched, pred, *operands):
         pred_batched, *operands_batched = in_batched
-        pred = pred if pred_batched else jnp.broadcast_to(pred, (axis_size,))
-        out = batched(pred, *_broadcast(operands, operands_batched, axis_size))
+        operands = _broadcast(operands, operands_batched, axis_size)
+        out = batched(pred, *operands) if pred_batched else lifted(pred, *operands)
         return out, _all_batched(out)
 
     return cond
@@ -131,7 +137,10 @@ def uniform_cond(pred: jax.Array, true_fun: Callable, false_fun: Callable, *oper
             *operands,
         )
 
-    return _cond_with_vmap_rule(true_fun, false_fun, batched)(pred, *operands)
+    def lifted(pred, *operands):
+        return uniform_cond(pred, true_all, false_all, *operands)
+
+    return _cond_with_vmap_rule(true_fun, false_fun, batched, lifted)(pred, *operands)
 
 
 def update_where(pred: jax.Array, update: Callable, state: Any, *args: Any) -> Any:
@@ -163,7 +172,57 @@ def update_where(pred: jax.Array, update: Callable, state: Any, *args: Any) -> A
 
         return jax.lax.while_loop(lambda carry: carry[0], disagreeing, (jnp.any(pred) & ~every, state))[1]
 
-    return _cond_with_vmap_rule(update, keep, batched)(pred, state, *args)
+    def lifted(pred: jax.Array, state: Any, *args: Any) -> Any:
+        return update_where(pred, jax.vmap(update), state, *args)
+
+    return _cond_with_vmap_rule(update, keep, batched, lifted)(pred, state, *args)
+
+
+_SHARED = "amjax_shared_by_batch"
+
+
+def shared_field(**kwargs: Any) -> Any:
+    """A field of a ``flax.struct`` dataclass that every member of a batch holds equal: a step counter, which the
+    configurations of a sweep batch advance together. A ``vmap`` with ``member_axes``'s axes takes it once,
+    unbatched, so a branch on it (learning has started, the target update) stays one conditional, as in a plain
+    implementation with one counter."""
+    return struct.field(metadata={_SHARED: True}, **kwargs)
+
+
+def _is_dataclass(node: Any) -> bool:
+    return dataclasses.is_dataclass(node) and not isinstance(node, type)
+
+
+def member_axes(tree: Any) -> Any:
+    """``vmap`` axes of a batch of ``tree``s stacked on a leading axis: ``None`` at the ``shared_field`` fields of
+    its dataclasses, 0 at every other leaf."""
+    if _is_dataclass(tree):
+        fields = [f for f in dataclasses.fields(tree) if f.init and f.metadata.get("pytree_node", True)]
+        return tree.replace(
+            **{f.name: None if f.metadata.get(_SHARED) else member_axes(getattr(tree, f.name)) for f in fields}
+        )
+    return jax.tree.map(lambda node: member_axes(node) if _is_dataclass(node) else 0, tree, is_leaf=_is_dataclass)
+
+
+def take_shared(batch: Any) -> Any:
+    """A stacked ``batch`` whose ``shared_field`` leaves are its first member's, unbatched (``member_axes``)."""
+    return jax.tree.map(
+        lambda axis, x: x if axis == 0 or x is None else x[0], member_axes(batch), batch, is_leaf=lambda a: a is None
+    )
+
+
+def shared_disagreements(batch: Any) -> list[str]:
+    """The ``shared_field`` leaves of a stacked ``batch`` (host arrays) whose members differ, as paths (none in a
+    batch that ``take_shared`` may take from its first member)."""
+    shared = jax.tree.map(
+        lambda axis, x: jax.tree.map(lambda _: axis is None, x), member_axes(batch), batch, is_leaf=lambda a: a is None
+    )
+    flat = jax.tree_util.tree_flatten_with_path(batch)[0]
+    return [
+        jax.tree_util.keystr(path)
+        for (path, leaf), is_shared in zip(flat, jax.tree.leaves(shared), strict=True)
+        if is_shared and not np.all(np.asarray(leaf) == np.asarray(leaf)[:1])
+    ]
 
 
 def select_compacted(
@@ -190,7 +249,12 @@ def select_compacted(
         raise ValueError(f"min_chunk must be an int >= 1, got {min_chunk!r}")
     expensive, cheap = _traced(expensive, *operands), _traced(cheap, *operands)
     batched = _compacted_rows(expensive, cheap, capacity, min_chunk)
-    return _cond_with_vmap_rule(expensive, cheap, batched)(pred, *operands)
+
+    def lifted(pred, *operands):
+        expensive_all, cheap_all = jax.vmap(expensive), jax.vmap(cheap)
+        return select_compacted(pred, expensive_all, cheap_all, *operands, capacity=capacity, min_chunk=min_chunk)
+
+    return _cond_with_vmap_rule(expensive, cheap, batched, lifted)(pred, *operands)
 
 
 def _compacted_rows(expensive: Callable, cheap: Callable, capacity: float, min_chunk: int) -> Callable:
@@ -278,4 +342,14 @@ def _grouped(fun: Callable, group_size: int, keep_unbatched: bool) -> Callable:
     return grouped
 
 
-__all__ = ["in_groups", "select_compacted", "uniform_cond", "update_where", "varying_axes"]
+__all__ = [
+    "in_groups",
+    "member_axes",
+    "select_compacted",
+    "shared_disagreements",
+    "shared_field",
+    "take_shared",
+    "uniform_cond",
+    "update_where",
+    "varying_axes",
+]

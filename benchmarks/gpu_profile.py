@@ -39,8 +39,21 @@ from benchmarks.throughput.cases import _default_buffer, _round_steps, _steps_pe
 from benchmarks.throughput.timing import interleaved  # noqa: E402
 
 
+def _batched_counters() -> list[tuple[Any, str, Any]]:
+    """The sweep programs' step counters batched like every other leaf of the state (before
+    `batching.shared_field`): the learning step and the target update branch on batched predicates, a conditional
+    on "every member" and a loop for disagreeing members each (`batching.update_where`)."""
+    from amjax.sweep import batches
+
+    return [
+        (batches, "member_axes", lambda tree: jax.tree.map(lambda _: 0, tree)),
+        (batches, "take_shared", lambda t: t),
+    ]
+
+
 def _pass_through() -> list[tuple[Any, str, Any]]:
-    """Dueling DQN's and DRQN's learning step and target update as before `batching.update_where`."""
+    """Dueling DQN's and DRQN's learning step and target update as before `batching.update_where`, on batched step
+    counters (`_batched_counters`)."""
     import jax.numpy as jnp
     import optax
 
@@ -66,7 +79,7 @@ def _pass_through() -> list[tuple[Any, str, Any]]:
             target_params,
         )
 
-    return [
+    return _batched_counters() + [
         (module, name, value)
         for module in (dqn, drqn)
         for name, value in (("learn_or_wait", learn_or_wait), ("update_target", update_target))
@@ -75,10 +88,16 @@ def _pass_through() -> list[tuple[Any, str, Any]]:
 
 # name -> (what it changes, the (module, attribute, value) patches that make it)
 VARIANTS = {
+    "batched-counters": (
+        "the step counters batched (before `batching.shared_field`): `update_where`'s two host round trips "
+        "(every member? any disagreeing?) at the learning step and at the target update instead of one plain "
+        "conditional each",
+        _batched_counters,
+    ),
     "pass-through": (
         "the Q-learners' learning step as a `uniform_cond` whose waiting branch passes the parameters and optimiser "
         "state through (copied back into the loop's state at every update) and the target update as a select under "
-        "the GPU strategy: the layout before `update_where`",
+        "the GPU strategy, on batched step counters: the layout before `update_where`",
         _pass_through,
     ),
 }

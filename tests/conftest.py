@@ -241,3 +241,21 @@ def assert_batch_equals_alone():
     """`assert_batch_equals_alone(algo, configs, keys) -> (rows, states alone)`: config i inside the vmapped batch
     equals config i trained alone."""
     return _assert_batch_equals_alone
+
+
+def _primitive_names(closed: Any) -> list[str]:
+    """The primitives of a closed jaxpr, in order, those of its sub-jaxprs (branches, loop bodies) included."""
+    from jax.extend.core import ClosedJaxpr, jaxprs_in_params
+
+    names = []
+    for eqn in closed.jaxpr.eqns:
+        names.append(eqn.primitive.name)
+        names += [n for sub in jaxprs_in_params(eqn.params) for n in _primitive_names(ClosedJaxpr(sub, ()))]
+    return names
+
+
+@pytest.fixture(scope="session")
+def primitive_names():
+    """`primitive_names(closed_jaxpr) -> [name, ...]`: every primitive of a `jax.make_jaxpr` result, nested ones
+    included."""
+    return _primitive_names

@@ -4,16 +4,27 @@
 from __future__ import annotations
 
 import re
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import struct
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from jax.sharding import Mesh, PartitionSpec
 
-from amjax.batching import in_groups, select_compacted, uniform_cond, update_where
+from amjax.batching import (
+    in_groups,
+    member_axes,
+    select_compacted,
+    shared_disagreements,
+    shared_field,
+    take_shared,
+    uniform_cond,
+    update_where,
+)
 
 
 def expensive(x, y):
@@ -145,6 +156,60 @@ def test_update_where_equals_cond_per_member(mask, seed):
     jax.tree.map(np.testing.assert_array_equal, got, want)
     unbatched = jax.jit(member)(pred[0, 0], jax.tree.map(lambda x: x[0, 0], state), scale[0])
     jax.tree.map(np.testing.assert_array_equal, unbatched, jax.tree.map(lambda x: x[0, 0], want))
+
+
+@pytest.mark.parametrize("helper", ["update_where", "uniform_cond", "select_compacted"])
+@pytest.mark.parametrize("pred", [True, False])
+def test_an_unbatched_predicate_stays_one_conditional(helper, pred, primitive_names):
+    """A predicate every member shares (a step counter's: `shared_field`) under vmap: one conditional over the
+    batch, no loop for disagreeing members and no reduction (a GPU reads it back to the host once), with each
+    member's own result; under a further vmap whose members differ, still a branch."""
+    state = {"w": jax.random.normal(jax.random.PRNGKey(0), (4, 2)), "n": jnp.zeros(4, jnp.int32)}
+    scale = jnp.array([0.5, -1.0, 2.0, 3.0])
+    member = {
+        "update_where": lambda p, s, c: update_where(p, update, s, c),
+        "uniform_cond": lambda p, s, c: uniform_cond(p, update, lambda s, c: s, s, c),
+        "select_compacted": lambda p, s, c: select_compacted(p, update, lambda s, c: s, s, c, min_chunk=1),
+    }[helper]
+    batched = jax.vmap(member, (None, 0, 0))
+    names = primitive_names(jax.make_jaxpr(batched)(jnp.bool_(pred), state, scale))
+    assert names.count("cond") == 1 and "while" not in names and "reduce_and" not in names, names
+    got = jax.jit(batched)(jnp.bool_(pred), state, scale)
+    want = jax.vmap(updated_where, (None, 0, 0))(jnp.bool_(pred), state, scale)
+    jax.tree.map(np.testing.assert_array_equal, got, want)
+    # Shared within each row but not across rows: the outer vmap keeps the helper's own rule (a branch, or
+    # select_compacted's loop over the members that need `expensive`), not a select that computes both for all.
+    preds, rows = jnp.array([pred, not pred]), jax.tree.map(lambda x: jnp.stack([x, -x]), (state, scale))
+    nested = jax.vmap(batched)
+    names = primitive_names(jax.make_jaxpr(nested)(preds, *rows))
+    assert "cond" in names or "while" in names, names
+    want = jax.vmap(jax.vmap(updated_where, (None, 0, 0)))(preds, *rows)
+    jax.tree.map(np.testing.assert_array_equal, jax.jit(nested)(preds, *rows), want)
+
+
+@struct.dataclass
+class Counted:
+    params: jax.Array
+    steps: jax.Array = shared_field()
+    unused: Any = None
+
+
+def test_shared_fields_go_unbatched():
+    """`member_axes` maps `shared_field`s to None wherever their dataclass sits; `take_shared` takes them from the
+    first member; `shared_disagreements` names those whose members differ."""
+    batch = {
+        "a": Counted(jnp.ones((3, 2)), jnp.full(3, 7)),
+        "b": [jnp.zeros(3), Counted(jnp.ones(3), jnp.array([1, 2, 1]))],
+    }
+    axes = member_axes(batch)
+    assert axes == {"a": Counted(0, None, None), "b": [0, Counted(0, None, None)]}
+    taken = take_shared(batch)
+    assert taken["a"].steps.shape == () and int(taken["b"][1].steps) == 1
+    np.testing.assert_array_equal(taken["a"].params, batch["a"].params)
+    assert shared_disagreements(jax.device_get(batch)) == ["['b'][1].steps"]
+    out = jax.vmap(lambda c: c.replace(params=c.params * c.steps, steps=c.steps + 1), (axes["a"],))(taken["a"])
+    np.testing.assert_array_equal(out.params, 7 * batch["a"].params)
+    np.testing.assert_array_equal(out.steps, jnp.full(3, 8))  # vmap's out_axes 0 spreads it over the batch again
 
 
 def _loop_body_copies(compiled_text: str, shape: str, marker: str) -> int:

@@ -116,36 +116,38 @@ def test_profile_on_a_cpu_leaves_loops_and_branches_out():
     assert summary["kernels"] >= 20  # the body's matrix product, once per iteration
 
 
-def test_gpu_profile_variant_changes_the_program_it_names():
-    """benchmarks/gpu_profile.py --variants pass-through: under the GPU strategy the Q-learners' update goes back to
-    a learning step whose waiting branch passes the state through (a three-way conditional, no loop) and a target
-    update that selects (no conditional); the patch is gone after the block."""
+def test_gpu_profile_variants_change_the_program_they_name():
+    """benchmarks/gpu_profile.py --variants, on the sweep's chunk program under the GPU strategy (StableHLO loops
+    include scans): `batched-counters` batches the step counters, so the learning step and the target update each
+    add a loop for disagreeing members (the learning one holds the gradient steps' scan a second time);
+    `pass-through` goes back to a learning step whose waiting branch passes the state through (one three-way
+    conditional, whose "some members" branch holds that scan again) and a target update that selects (no
+    conditional). The patches are gone after the block."""
     import jax
+    import jax.numpy as jnp
 
-    from amjax import strategy
     from amjax.agents import DQN, DQNConfig, dqn, stack_configs
+    from amjax.sweep import batches
     from benchmarks import gpu_profile
 
     configs = [DQNConfig(cost=c, num_envs=2, buffer_size=64, learning_starts=8).validate() for c in (0.1, 0.2)]
     stacked = stack_configs(configs)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)])
+    devices = tuple(jax.devices()[:1])
 
-    def control_flow() -> tuple[int, int]:
-        def update(config, key):
-            setup = DQN.setup(configs[0])  # the static fields; the traced ones come from `config`
-            return DQN.update(config, setup, DQN.init(config, setup, key))[0].target_params
-
-        keys = jax.random.split(jax.random.PRNGKey(0), 2)
-        text = jax.jit(jax.vmap(update)).lower(stacked, keys).as_text()
+    def control_flow(name: str | None) -> tuple[int, int]:
+        with gpu_profile.variant(name):
+            init, chunk = batches.compiled_programs(DQN, 1, devices, "gpu")
+            text = chunk.lower(stacked, init(stacked, keys)).as_text()
+            batches._compiled_programs.cache_clear()  # the next variant traces afresh
         return text.count("stablehlo.case") + text.count("stablehlo.if"), text.count("stablehlo.while")
 
-    update_target = dqn.update_target
-    with strategy.use("gpu"):
-        (conds, loops) = control_flow()
-        with gpu_profile.variant("pass-through"):
-            (patched_conds, patched_loops) = control_flow()
-    # update_where: the learning step and the target update, each a conditional and a loop for disagreeing members.
-    assert (conds - patched_conds, loops - patched_loops) == (1, 2), (conds, loops, patched_conds, patched_loops)
-    assert dqn.update_target is update_target
+    originals = (dqn.update_target, batches.member_axes, batches.take_shared)
+    conds, loops = control_flow(None)
+    counted = {name: control_flow(name) for name in ("batched-counters", "pass-through")}
+    differences = {name: (c - conds, n - loops) for name, (c, n) in counted.items()}
+    assert differences == {"batched-counters": (0, 3), "pass-through": (-1, 1)}, (conds, loops, counted)
+    assert (dqn.update_target, batches.member_axes, batches.take_shared) == originals
 
 
 def test_replicate_time_says_what_a_timed_out_case_measured():

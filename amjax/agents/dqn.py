@@ -39,6 +39,7 @@ from amjax.agents.replay import ReplayBuffer, replay_add, replay_init, replay_sa
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
+from amjax.batching import shared_field
 
 
 @struct.dataclass
@@ -63,7 +64,7 @@ class DQNState:
     envs: EnvBatch
     pending: dict[str, jax.Array]  # the last n_step - 1 transitions per env, [n_step - 1, num_envs, ...]
     key: jax.Array
-    env_steps: jax.Array
+    env_steps: jax.Array = shared_field()  # equal in every member of a sweep batch
 
 
 def network(config: DQNConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -> DuelingQNetwork:

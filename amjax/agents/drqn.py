@@ -59,7 +59,7 @@ from amjax.agents.replay import ReplayBuffer, sequence_add, sequence_init, seque
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
-from amjax.batching import update_where
+from amjax.batching import shared_field, update_where
 from amjax.validation import check_positive_int
 
 
@@ -119,7 +119,7 @@ class DRQNState:
     carry: Any  # the hidden state of every training env
     pending: dict[str, Any]  # the last burn_in + seq_len - train_freq steps per env (with their hidden states)
     key: jax.Array
-    env_steps: jax.Array
+    env_steps: jax.Array = shared_field()  # equal in every member of a sweep batch
 
 
 network = recurrent_q_network  # (config, action space, torso) -> DRQN's network

@@ -31,7 +31,7 @@ from amjax.agents.ppo_core import (
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, greedy_policy, make_train
-from amjax.batching import in_groups
+from amjax.batching import in_groups, shared_field
 
 
 @struct.dataclass
@@ -51,7 +51,7 @@ class PPOState:
     opt_state: Any
     envs: EnvBatch
     key: jax.Array
-    updates: jax.Array
+    updates: jax.Array = shared_field()  # equal in every member of a sweep batch
 
 
 def network(config: PPOConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -> ActorCritic:

@@ -33,6 +33,7 @@ from amjax.agents.ppo_core import (
 from amjax.agents.rollout import EnvBatch, FinishedEpisodes, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
+from amjax.batching import shared_field
 
 
 @struct.dataclass
@@ -65,7 +66,7 @@ class PPORNNState:
     envs: EnvBatch
     carry: Any  # the hidden state of every training env
     key: jax.Array
-    updates: jax.Array
+    updates: jax.Array = shared_field()  # equal in every member of a sweep batch
 
 
 def network(config: PPORNNConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -> RecurrentActorCritic:

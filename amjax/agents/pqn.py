@@ -36,6 +36,7 @@ from amjax.agents.q_learning import bootstrap_values, epsilon, epsilon_greedy_ac
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
+from amjax.batching import shared_field
 from amjax.validation import check_bool
 
 
@@ -97,7 +98,7 @@ class PQNState:
     opt_state: Any
     envs: EnvBatch
     key: jax.Array
-    env_steps: jax.Array
+    env_steps: jax.Array = shared_field()  # equal in every member of a sweep batch
 
 
 def network(config: PQNConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -> DuelingQNetwork:

@@ -44,6 +44,7 @@ from amjax.agents.q_learning import (
 from amjax.agents.rollout import EnvBatch, fast_key, key_bits, reset_envs, rollout
 from amjax.agents.setup import Setup
 from amjax.agents.training import Algorithm, UpdateStats, make_train
+from amjax.batching import shared_field
 
 
 @struct.dataclass
@@ -69,7 +70,7 @@ class PQNRNNState:
     envs: EnvBatch
     carry: Any  # the hidden state of every training env
     key: jax.Array
-    env_steps: jax.Array
+    env_steps: jax.Array = shared_field()  # equal in every member of a sweep batch
 
 
 def network(config: PQNRNNConfig, action_space: Any, torso: Torso = VECTOR_TORSO) -> RecurrentQNetwork:

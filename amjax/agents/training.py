@@ -26,7 +26,7 @@ from amjax.agents.config import AgentConfig
 from amjax.agents.networks import Torso, pick_torso
 from amjax.agents.rollout import ActFn, EnvBatch, FinishedEpisodes, fast_key, reset_envs, step_envs
 from amjax.agents.setup import Setup, training_env
-from amjax.batching import in_groups
+from amjax.batching import in_groups, shared_field
 from amjax.wrappers.episode_stats import EpisodeMetrics
 
 Policy = tuple[ActFn, Any]  # (act function, its initial agent carry for a batch of envs; None if memoryless)
@@ -69,7 +69,7 @@ class RunState:
 
     algo: Any
     key: jax.Array  # for evaluation episodes
-    evals_done: jax.Array
+    evals_done: jax.Array = shared_field()  # equal in every member of a sweep batch
     best_return: jax.Array  # best greedy test costed return so far (the paper's metric)
     best_measured_fraction: jax.Array  # measured fraction of steps at that best evaluation
     best_params: Any  # network parameters of that best evaluation (the policy a sweep saves)

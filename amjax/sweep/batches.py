@@ -17,6 +17,7 @@ import numpy as np
 
 from amjax import strategy
 from amjax.agents import ALGORITHMS, Algorithm, init_run, rescore, run_evals, stack_configs
+from amjax.batching import member_axes, take_shared
 from amjax.cores import maps_past_half
 from amjax.sweep.devices import config_sharding, sharded_jit, sweep_devices
 from amjax.sweep.grid import RunConfig, group_runs
@@ -98,12 +99,16 @@ def _compiled_programs(
     # kernel under amjax's small-loop option, body and all: 47 s instead of 17.5 for LunarLander-v3's Dueling DQN,
     # whose initialisation steps the envs (docs/lunar_lander.md, "Initialisation vmapped").
     init = jax.jit(jax.vmap(init_one))
+
+    def chunk_batch(configs, states):
+        # The step counters every configuration shares go in once, unbatched (`batching.shared_field`): branches
+        # on them (learning has started, the target update) stay single conditionals, as in a plain implementation.
+        return jax.vmap(chunk_one, in_axes=(0, member_axes(states)))(configs, take_shared(states))
+
     # Shardings pinned on both sides, so the states a chunk returns (zero-size arrays included, which XLA would
     # otherwise return replicated) are placed as the next chunk expects them.
     sharding = config_sharding(list(devices))
-    chunk = sharded_jit(
-        jax.vmap(chunk_one), list(devices), donate_argnums=1, in_shardings=sharding, out_shardings=sharding
-    )
+    chunk = sharded_jit(chunk_batch, list(devices), donate_argnums=1, in_shardings=sharding, out_shardings=sharding)
     return init, chunk
 
 

@@ -34,6 +34,7 @@ import pandas as pd
 from flax import serialization
 
 import amjax
+from amjax.batching import shared_disagreements
 from amjax.cores import cpu_description
 from amjax.files import atomic_write
 
@@ -245,7 +246,14 @@ def load_checkpoint(path: Path, like: Any) -> tuple[Any, int]:
         for s, x in zip(stored, leaves, strict=True)
     ):
         raise UnreadableFileError(f"checkpoint {path} does not match this sweep's train state; delete it to restart")
-    return jax.tree.unflatten(treedef, stored), evals_done
+    restored = jax.tree.unflatten(treedef, stored)
+    # The chunk program takes the step counters from the first configuration (`batching.take_shared`).
+    if differ := shared_disagreements(restored):
+        raise UnreadableFileError(
+            f"checkpoint {path} holds step counters that differ between its configurations ({', '.join(differ)}); "
+            "delete it to restart that batch"
+        )
+    return restored, evals_done
 
 
 # -- metadata ----------------------------------------------------------------------------------------------

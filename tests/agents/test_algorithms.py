@@ -39,6 +39,8 @@ from amjax.agents.q_learning import (
 from amjax.agents.replay import replay_add, replay_init, replay_sample
 from amjax.agents.rollout import EnvBatch, reset_envs, rollout
 from amjax.agents.saved import SavedPolicy
+from amjax.batching import member_axes, take_shared
+from amjax.sweep.batches import compiled_programs
 
 TINY = {
     "ppo": PPOConfig(total_timesteps=4096, eval_every=2048, num_envs=4, num_steps=64, eval_episodes=2),
@@ -460,3 +462,67 @@ def test_a_measured_end_pays_the_learner_as_before():
 
     _, _, transitions, _, _ = rollout(env, params, batch, jnp.int32(0), measure_last, jax.random.key(1), 3)
     np.testing.assert_allclose(transitions.reward[:, 0], [0.0, 0.0, 3.0])
+
+
+# A Q-learner whose learning starts inside its first evaluation period and whose target updates twice in it.
+SHARED_COUNTER_CONFIGS = {
+    "dqn": TINY["dqn"].replace(learning_starts=400, target_update_interval=300),
+    "drqn": DRQNConfig(
+        total_timesteps=1600,
+        eval_every=800,
+        learning_starts=400,
+        num_envs=4,
+        buffer_size=200,
+        batch_size=8,
+        seq_len=8,
+        burn_in=2,
+        train_freq=5,
+        target_update_interval=300,
+        hidden=(16,),
+        rnn_size=8,
+        eval_episodes=2,
+    ),
+}
+
+
+@pytest.mark.parametrize(("name", "branches"), [("dqn", 2), ("drqn", 3)])
+def test_a_sweep_batch_branches_once_on_its_shared_step_counter(name, branches, primitive_names):
+    """In a sweep batch the step counter goes in unbatched (`batching.shared_field`): each branch of an update
+    (learning has started, the target update; DRQN's cached target values) is one conditional over the batch, with
+    no loop for disagreeing members and no reduction of the predicate (a GPU reads each predicate back to the host
+    once, as a plain implementation with one counter does). With the counter batched, the loops are there."""
+    algo = ALGORITHMS[name]
+    configs = stack_configs([SHARED_COUNTER_CONFIGS[name].replace(cost=c) for c in (0.1, 0.3)])
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    states = jax.eval_shape(jax.vmap(lambda c, k: algo.init(c, algo.setup(c), k)), configs, keys)
+
+    def update(config, state):
+        return algo.update(config, algo.setup(config), state)
+
+    def primitives(axes, state):
+        return primitive_names(jax.make_jaxpr(jax.vmap(update, in_axes=(0, axes)))(configs, state))
+
+    shared = primitives(member_axes(states), jax.eval_shape(take_shared, states))
+    assert shared.count("cond") == branches and "while" not in shared and "reduce_and" not in shared
+    batched = primitives(0, states)
+    assert batched.count("while") == branches and batched.count("reduce_and") == branches
+
+
+@pytest.mark.parametrize("name", sorted(SHARED_COUNTER_CONFIGS))
+@pytest.mark.slow
+def test_the_sweep_program_trains_as_a_plain_vmap(name, training_programs):
+    """The sweep runner's chunk program (step counters unbatched, one evaluation per chunk) gives bit for bit the
+    rows and final states of a plain `vmap` of the whole run (every leaf batched)."""
+    algo = ALGORITHMS[name]
+    configs = [SHARED_COUNTER_CONFIGS[name].replace(cost=c, learning_rate=lr) for c, lr in ((0.1, 1e-3), (0.3, 3e-3))]
+    stacked = stack_configs([c.validate() for c in configs])
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in (3, 4)])
+    want_states, want_rows = training_programs(algo).batched(stacked, keys)
+    init, chunk = compiled_programs(algo, 1, tuple(jax.devices()[:1]))
+    states, rows = init(stacked, keys), []
+    for _ in range(configs[0].num_evals):
+        states, chunk_rows = chunk(stacked, states)
+        rows.append(chunk_rows)
+    rows = jax.tree.map(lambda *r: np.concatenate(r, axis=1), *rows)
+    assert float(np.abs(np.asarray(want_rows.loss)).max()) > 0  # it learnt
+    jax.tree.map(lambda g, w: np.testing.assert_array_equal(g, w), (states, rows), (want_states, want_rows))

@@ -452,6 +452,28 @@ def test_checkpoint_roundtrip_and_corruption(tmp_path):
         load_checkpoint(tmp_path / "c.msgpack", state)
 
 
+def test_a_checkpoint_whose_step_counters_differ_is_refused(tmp_path):
+    """The chunk program takes a batch's step counters from its first configuration (`batching.take_shared`), so a
+    checkpoint whose configurations disagree on one is refused, not resumed from the wrong step."""
+    from flax import struct
+
+    from amjax.batching import shared_field
+
+    @struct.dataclass
+    class State:
+        params: np.ndarray
+        env_steps: np.ndarray = shared_field()
+
+    good = {"algo": State(np.ones((3, 2), np.float32), np.full(3, 40, np.int32))}
+    save_checkpoint(tmp_path / "c.msgpack", good, evals_done=2)
+    restored, _ = load_checkpoint(tmp_path / "c.msgpack", good)
+    np.testing.assert_array_equal(restored["algo"].env_steps, good["algo"].env_steps)
+    bad = {"algo": State(good["algo"].params, np.array([40, 40, 36], np.int32))}
+    save_checkpoint(tmp_path / "c.msgpack", bad, evals_done=2)
+    with pytest.raises(ValueError, match=r"differ between its configurations \(\['algo'\]\.env_steps\)"):
+        load_checkpoint(tmp_path / "c.msgpack", good)
+
+
 def test_summaries_by_hand():
     rows = pd.DataFrame(
         {
