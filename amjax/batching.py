@@ -12,6 +12,9 @@ member. The functions here are ``custom_vmap`` rules that keep the work proporti
 - ``in_groups``: a batch run in cache-sized groups instead of all at once (under the ``"cpu"`` strategy only:
   `amjax.strategy`).
 
+A predicate that is not batched (one every member shares: a ``shared_field`` step counter's) makes each of them one
+branch over the whole batch, which an outer ``vmap`` level batches by the same rule again.
+
 The functions passed in must be pure functions of their operands (pass traced values as operands, do not close
 over them), as ``custom_vmap`` requires. Each is traced once, at its operands' per-member types: ``custom_vmap``
 needs the unbatched program and its rule the batched one, and the rule replays the recorded program under ``vmap``
