@@ -150,22 +150,23 @@ def update_where(pred: jax.Array, update: Callable, state: Any, *args: Any) -> A
     """``update(state, *args)`` (a new state of the same structure) where ``pred`` holds, else ``state`` unchanged:
     ``lax.cond(pred, update, keep, state, *args)`` that stays a branch under ``vmap`` and updates in place.
 
-    With a batched predicate, one conditional runs ``update`` for the batch when every member takes it (else keeps
-    the state), then a loop of at most one iteration updates and selects per member when they disagree. A
+    With an unbatched predicate (a ``shared_field`` step counter's, as in a sweep batch) it is one conditional over
+    the batch. With a batched one, a conditional runs ``update`` for the batch when every member takes it (else
+    keeps the state), then a loop of at most one iteration updates and selects per member when they disagree. A
     `uniform_cond` with a pass-through branch copies what passes through: XLA compiles a conditional whose
     branches disagree among several into fresh output buffers, which a loop-carried state (a learning step's
     parameters and optimiser state, DRQN's replay buffer) then copies back into its own at every iteration. Here
     the conditional is all-or-nothing and the disagreeing case is a loop, which XLA updates in place; a batch that
-    agrees (every sweep: its configurations count the same env steps) pays neither the copy nor a select. Outer
+    agrees pays neither the copy nor a select. Outer
     ``vmap`` levels reduce their predicates the same way.
     """
     update = _traced(update, state, *args)
+    update_all = jax.vmap(update)
 
     def keep(state: Any, *_: Any) -> Any:
         return state
 
     def batched(pred: jax.Array, state: Any, *args: Any) -> Any:
-        update_all = jax.vmap(update)
         every = jnp.all(pred)
         state = update_where(every, update_all, state, *args)
 
@@ -176,7 +177,7 @@ def update_where(pred: jax.Array, update: Callable, state: Any, *args: Any) -> A
         return jax.lax.while_loop(lambda carry: carry[0], disagreeing, (jnp.any(pred) & ~every, state))[1]
 
     def lifted(pred: jax.Array, state: Any, *args: Any) -> Any:
-        return update_where(pred, jax.vmap(update), state, *args)
+        return update_where(pred, update_all, state, *args)
 
     return _cond_with_vmap_rule(update, keep, batched, lifted)(pred, state, *args)
 
