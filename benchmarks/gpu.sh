@@ -38,7 +38,7 @@
 #
 # On a machine that cannot reach the package index (jax, flax, optax, chex, pandas and pyarrow there, no gymnax),
 # put the wheels of gymnax 1.0.1, gymnasium 1.3.0 and farama-notifications in .whl/ at the repository's root
-# (shared/research/gpu.md says how to download them): they are installed into a temporary folder first.
+# (docs/guide/gpu.md says how to download them): they are installed into a temporary folder first.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 out=${1:-benchmarks/results/gpu_$(date +%Y-%m-%d)}
