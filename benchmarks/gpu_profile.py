@@ -14,7 +14,10 @@ kernels that take the most device time), and renders the markdown beside it. On 
 then the CPU's thunks), which is how the script is checked before a GPU session.
 
 `--variants` adds amjax's programs compiled with a change patched in (`VARIANTS`), timed and profiled beside the
-others as "amjax+NAME": an experiment on the device before the library changes.
+others as "amjax+NAME": an experiment on the device before the library changes. A compiler variant
+(`COMPILER_VARIANTS`: XLA options, no change to the code) compiles both implementations with its options, as
+"amjax+NAME" and "reference+NAME", so that its gain for amjax can be told from its gain for any program. A variant
+whose compile fails (an option this XLA or device does not take) is reported and left out; the rest still run.
 """
 
 from __future__ import annotations
@@ -103,10 +106,25 @@ VARIANTS = {
 }
 
 
+# XLA's kinds of GPU command buffer by default (`xla_gpu_enable_command_buffer` in XLA's debug_options_flags.cc, 2026),
+# then with conditionals and loops too: a conditional inside a command buffer (a CUDA graph's conditional node) runs
+# on the device, without reading its predicate back to the host.
+DEFAULT_COMMAND_BUFFER = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,DYNAMIC_SLICE_FUSION"
+
+# name -> (what it changes, XLA compiler options), compiled into amjax's programs and the reference's alike
+COMPILER_VARIANTS = {
+    "command-buffers": (
+        "XLA's GPU command buffers also holding conditionals and loops (`xla_gpu_enable_command_buffer`: the default "
+        "kinds plus CONDITIONAL and WHILE): a Q-learner's branches and the update loop without host round trips",
+        {"xla_gpu_enable_command_buffer": DEFAULT_COMMAND_BUFFER + ",CONDITIONAL,WHILE"},
+    ),
+}
+
+
 @contextlib.contextmanager
 def variant(name: str | None) -> Iterator[None]:
-    """`VARIANTS[name]` patched in while amjax's programs are traced (nothing for None)."""
-    patches = VARIANTS[name][1]() if name is not None else []
+    """`VARIANTS[name]` patched in while amjax's programs are traced (nothing for None or a compiler variant)."""
+    patches = VARIANTS[name][1]() if name in VARIANTS else []
     saved = [(module, attr, getattr(module, attr)) for module, attr, _ in patches]
     for module, attr, value in patches:
         setattr(module, attr, value)
@@ -117,24 +135,38 @@ def variant(name: str | None) -> Iterator[None]:
             setattr(module, attr, value)
 
 
-def build(case: dict[str, Any], variants: Sequence[str] = ()) -> dict[str, Any]:
-    """impl -> (run, optimised HLO texts) for amjax (and each of `variants`) and the reference, compiled as the
-    throughput benchmark does."""
+def build(case: dict[str, Any], variants: Sequence[str] = ()) -> tuple[dict[str, Any], dict[str, str]]:
+    """impl -> (run, optimised HLO texts) for amjax (and each of `variants`) and the reference (and each compiler
+    variant's), compiled as the throughput benchmark does; and impl -> error for the variants that did not compile."""
     from amjax.sweep.batches import _compiled_programs
 
-    built = {}
+    built, failed = {}, {}
     for name in [None, *variants]:
-        with variant(name):
-            programs = runners._compile_amjax({**case, "impl": "amjax"})
-        _compiled_programs.cache_clear()  # the next variant traces afresh
-        jax.clear_caches()
-        built["amjax" if name is None else f"amjax+{name}"] = (
-            runners.sweep_run(programs),
-            [programs.chunk.as_text(), programs.init.as_text()],
-        )
-    reference, run_reference, _ = runners.compile_reference(case)
-    built["reference"] = (run_reference, [reference.as_text()])
-    return built
+        impl = "amjax" if name is None else f"amjax+{name}"
+        options = COMPILER_VARIANTS[name][1] if name in COMPILER_VARIANTS else None
+        try:
+            with variant(name):
+                programs = runners._compile_amjax({**case, "impl": "amjax"}, options)
+        except Exception as error:  # a variant's options this XLA or device does not take: the rest still run
+            if name is None:
+                raise
+            failed[impl] = f"{type(error).__name__}: {error}"
+            continue
+        finally:
+            _compiled_programs.cache_clear()  # the next variant traces afresh
+            jax.clear_caches()
+        built[impl] = (runners.sweep_run(programs), [programs.chunk.as_text(), programs.init.as_text()])
+    for name in [None, *(v for v in variants if v in COMPILER_VARIANTS)]:
+        impl = "reference" if name is None else f"reference+{name}"
+        try:
+            reference, run_reference, _ = runners.compile_reference(case, COMPILER_VARIANTS[name][1] if name else None)
+        except Exception as error:
+            if name is None:
+                raise
+            failed[impl] = f"{type(error).__name__}: {error}"
+            continue
+        built[impl] = (run_reference, [reference.as_text()])
+    return built, failed
 
 
 def render(runs: list[dict[str, Any]]) -> str:
@@ -205,12 +237,13 @@ def main(argv: list[str] | None = None) -> int:
         type=lambda text: [v for v in text.split(",") if v],
         default=[],
         help="comma-separated amjax variants to time beside it: "
-        + "; ".join(f"{k}: {v[0]}" for k, v in VARIANTS.items()),
+        + "; ".join(f"{k}: {v[0]}" for k, v in {**VARIANTS, **COMPILER_VARIANTS}.items()),
     )
     args = parser.parse_args(argv)
-    unknown = sorted(set(args.variants) - set(VARIANTS))
+    known = [*VARIANTS, *COMPILER_VARIANTS]
+    unknown = sorted(set(args.variants) - set(known))
     if unknown:
-        parser.error(f"--variants: unknown {', '.join(unknown)}; choose from {', '.join(VARIANTS)}")
+        parser.error(f"--variants: unknown {', '.join(unknown)}; choose from {', '.join(known)}")
 
     case = {
         "agent": args.agent,
@@ -233,8 +266,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{device.device_kind} ({jax.default_backend()}), {args.agent} {args.configs} x {case['steps']}", flush=True)
 
     start = time.perf_counter()
-    built = build(case, args.variants)
-    print(f"compiled both in {time.perf_counter() - start:.1f} s", flush=True)
+    built, failed = build(case, args.variants)
+    print(f"compiled {', '.join(built)} in {time.perf_counter() - start:.1f} s", flush=True)
+    for impl in [impl for impl in built if "+" in impl]:  # a variant that compiled may still fail on the device
+        try:
+            built[impl][0]()
+        except Exception as error:
+            failed[impl] = f"{type(error).__name__}: {error}"
+            del built[impl]
+    for impl, error in failed.items():
+        print(f"{impl}: left out: {error}", file=sys.stderr, flush=True)
     walls = interleaved({impl: run for impl, (run, _) in built.items()}, args.rounds)
     env_steps = case["configs"] * case["steps"]
     for impl, rounds in walls.items():  # printed before profiling, which may outlast a time limit
@@ -253,6 +294,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.profile:
             record.update(profile_call(run, texts, args.top))
         recorder.case(record)
+    for impl, error in failed.items():
+        recorder.case(
+            {"impl": impl, "agent": args.agent, "configs": args.configs, "steps": case["steps"], "status": error[:500]}
+        )
     recorder.end()
     markdown = harness.write_markdown(recorder.path, render)
     print(render([done for done in harness.read_runs(recorder.path) if done["run"] == recorder.run]))

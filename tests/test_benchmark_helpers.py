@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
+import types
 from pathlib import Path
 
 import pytest
@@ -148,6 +149,52 @@ def test_gpu_profile_variants_change_the_program_they_name():
     differences = {name: (c - conds, n - loops) for name, (c, n) in counted.items()}
     assert differences == {"batched-counters": (0, 3), "pass-through": (-1, 1)}, (conds, loops, counted)
     assert (dqn.update_target, batches.member_axes, batches.take_shared) == originals
+
+
+def test_gpu_profile_compiler_variants_compile_both_implementations(monkeypatch):
+    """benchmarks/gpu_profile.py's compiler variants: XLA options this jaxlib takes (a misspelt kind of command buffer
+    would fail every GPU compile), passed to amjax's programs and the reference's alike; a variant whose compile fails
+    is left out and named, the rest still built."""
+    import jax
+    import jax.numpy as jnp
+
+    from benchmarks import gpu_profile
+    from benchmarks.throughput import runners
+
+    options = gpu_profile.COMPILER_VARIANTS["command-buffers"][1]
+    program = jax.jit(lambda x: jax.lax.cond(x.sum() > 0, jnp.tanh, jnp.sin, x))
+    assert program.lower(jnp.ones(3)).compile(options)(jnp.ones(3)).tolist() == jnp.tanh(jnp.ones(3)).tolist()
+    with pytest.raises(Exception, match="not a valid enum value"):
+        program.lower(jnp.ones(3)).compile({"xla_gpu_enable_command_buffer": "FUSION,BOGUS"})
+
+    broken = {"xla_gpu_enable_command_buffer": "BOGUS"}
+    monkeypatch.setitem(gpu_profile.COMPILER_VARIANTS, "broken", ("an option XLA refuses", broken))
+    compiled = []
+
+    def compile_program(impl):
+        def compile_(case, compiler_options=None):
+            if compiler_options == broken:
+                raise RuntimeError("not a valid enum value")
+            compiled.append((impl, compiler_options))
+            text = types.SimpleNamespace(as_text=lambda: impl)
+            return types.SimpleNamespace(chunk=text, init=text) if impl == "amjax" else (text, lambda: None, 0.0)
+
+        return compile_
+
+    monkeypatch.setattr(runners, "_compile_amjax", compile_program("amjax"))
+    monkeypatch.setattr(runners, "compile_reference", compile_program("reference"))
+    monkeypatch.setattr(runners, "sweep_run", lambda programs: lambda: None)
+    built, failed = gpu_profile.build({"agent": "dqn"}, ["command-buffers", "broken", "batched-counters"])
+    assert list(built) == [
+        "amjax",
+        "amjax+command-buffers",
+        "amjax+batched-counters",
+        "reference",
+        "reference+command-buffers",
+    ]
+    assert sorted(failed) == ["amjax+broken", "reference+broken"]
+    assert compiled.count(("amjax", options)) == compiled.count(("reference", options)) == 1
+    assert compiled.count(("amjax", None)) == 2 and compiled.count(("reference", None)) == 1
 
 
 def test_replicate_time_says_what_a_timed_out_case_measured():

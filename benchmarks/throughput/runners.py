@@ -35,8 +35,9 @@ class SweepPrograms:
     compile_s: float
 
 
-def _compile_amjax(case: dict[str, Any]) -> SweepPrograms:
-    """Stack the case's configs and lower and compile the sweep runner's two programs for them, with arrays placed
+def _compile_amjax(case: dict[str, Any], compiler_options: dict[str, Any] | None = None) -> SweepPrograms:
+    """Stack the case's configs and lower and compile the sweep runner's two programs for them (with XLA's
+    `compiler_options`, if any: `Lowered.compile`'s), with arrays placed
     as the runner places them."""
     import jax
     import jax.numpy as jnp
@@ -56,13 +57,13 @@ def _compile_amjax(case: dict[str, Any]) -> SweepPrograms:
     sharding = config_sharding(devices)
 
     start = time.perf_counter()
-    init_compiled = init.lower(stacked, keys).compile()
+    init_compiled = init.lower(stacked, keys).compile(compiler_options)
     compile_s = time.perf_counter() - start
     # The chunk is lowered with arrays placed as the runner places them (a first init run, not timed).
     first_states = jax.device_put(init_compiled(stacked, keys), sharding)
     sharded_configs = jax.device_put(stacked, sharding)
     start = time.perf_counter()
-    chunk_compiled = chunk.lower(sharded_configs, first_states).compile()
+    chunk_compiled = chunk.lower(sharded_configs, first_states).compile(compiler_options)
     compile_s += time.perf_counter() - start
     chunks = configs[0].num_evals // evals_per_chunk
     return SweepPrograms(
@@ -152,9 +153,12 @@ def run_overhead(case: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def compile_reference(case: dict[str, Any]) -> tuple[Any, Callable[[], float | None], float]:
-    """benchmarks/reference_{ppo,dqn}.py compiled as `jax.jit(jax.vmap(train))(keys, costs)`: the compiled program,
-    a `run` that trains once (the median last test return, or None without evaluation) and the compile time."""
+def compile_reference(
+    case: dict[str, Any], compiler_options: dict[str, Any] | None = None
+) -> tuple[Any, Callable[[], float | None], float]:
+    """benchmarks/reference_{ppo,dqn}.py compiled as `jax.jit(jax.vmap(train))(keys, costs)` (with XLA's
+    `compiler_options`, if any): the compiled program, a `run` that trains once (the median last test return, or None
+    without evaluation) and the compile time."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -171,7 +175,7 @@ def compile_reference(case: dict[str, Any]) -> tuple[Any, Callable[[], float | N
     case_costs = jnp.asarray(costs(case), jnp.float32)
 
     start = time.perf_counter()
-    compiled = train.lower(keys, case_costs).compile()
+    compiled = train.lower(keys, case_costs).compile(compiler_options)
     compile_s = time.perf_counter() - start
 
     def run():
