@@ -86,7 +86,14 @@ def test_profile_names_the_source_line_behind_each_kernel():
         return jnp.tanh(x) @ x  # the line the profile must name
 
     x = jnp.ones((128, 128))
-    compiled = jax.jit(program).lower(x).compile()
+    # Not from the suite's compile cache: its key leaves out source lines, so an entry compiled before an edit above
+    # this test would name the old line.
+    cached = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    try:
+        compiled = jax.jit(program).lower(x).compile()
+    finally:
+        jax.config.update("jax_enable_compilation_cache", cached)
     compiled(x).block_until_ready()
     summary = profiles.profile_call(lambda: compiled(x).block_until_ready(), [compiled.as_text()], top=5)
     line = program.__code__.co_firstlineno + 1
