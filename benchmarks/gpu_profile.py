@@ -140,33 +140,36 @@ def build(case: dict[str, Any], variants: Sequence[str] = ()) -> tuple[dict[str,
     variant's), compiled as the throughput benchmark does; and impl -> error for the variants that did not compile."""
     from amjax.sweep.batches import _compiled_programs
 
-    built, failed = {}, {}
-    for name in [None, *variants]:
-        impl = "amjax" if name is None else f"amjax+{name}"
-        options = COMPILER_VARIANTS[name][1] if name in COMPILER_VARIANTS else None
+    def amjax(name: str | None) -> tuple[Any, list[str]]:
         try:
             with variant(name):
-                programs = runners._compile_amjax({**case, "impl": "amjax"}, options)
+                programs = runners._compile_amjax({**case, "impl": "amjax"}, compiler_options(name))
+        finally:
+            _compiled_programs.cache_clear()  # the next variant traces afresh
+            jax.clear_caches()
+        return runners.sweep_run(programs), [programs.chunk.as_text(), programs.init.as_text()]
+
+    def reference(name: str | None) -> tuple[Any, list[str]]:
+        compiled, run, _ = runners.compile_reference(case, compiler_options(name))
+        return run, [compiled.as_text()]
+
+    built, failed = {}, {}
+    jobs = [("amjax", amjax, name) for name in [None, *variants]]
+    jobs += [("reference", reference, name) for name in [None, *(v for v in variants if v in COMPILER_VARIANTS)]]
+    for implementation, compile_, name in jobs:
+        impl = implementation if name is None else f"{implementation}+{name}"
+        try:
+            built[impl] = compile_(name)
         except Exception as error:  # a variant's options this XLA or device does not take: the rest still run
             if name is None:
                 raise
             failed[impl] = f"{type(error).__name__}: {error}"
-            continue
-        finally:
-            _compiled_programs.cache_clear()  # the next variant traces afresh
-            jax.clear_caches()
-        built[impl] = (runners.sweep_run(programs), [programs.chunk.as_text(), programs.init.as_text()])
-    for name in [None, *(v for v in variants if v in COMPILER_VARIANTS)]:
-        impl = "reference" if name is None else f"reference+{name}"
-        try:
-            reference, run_reference, _ = runners.compile_reference(case, COMPILER_VARIANTS[name][1] if name else None)
-        except Exception as error:
-            if name is None:
-                raise
-            failed[impl] = f"{type(error).__name__}: {error}"
-            continue
-        built[impl] = (run_reference, [reference.as_text()])
     return built, failed
+
+
+def compiler_options(name: str | None) -> dict[str, Any] | None:
+    """The XLA options of compiler variant `name` (None for the plain programs and code variants)."""
+    return COMPILER_VARIANTS[name][1] if name in COMPILER_VARIANTS else None
 
 
 def render(runs: list[dict[str, Any]]) -> str:
