@@ -34,7 +34,7 @@
 #   GPU_QUICK=1 bash benchmarks/gpu.sh /tmp/gpu-smoke   # tiny sizes: checks the script on a CPU in ~5 minutes
 #   GPU_PARTS="ppo dqn demo" bash benchmarks/gpu.sh     # the parts named only
 #   GPU_PARTS="dqn-variants replicate" GPU_REPLICATE="--env LunarLander-v3 --agent dqn" GPU_REPLICATE_CASES=1 \
-#       GPU_REPLICATE_S=250 bash benchmarks/gpu.sh     # the next session's DQN experiment and one projection
+#       GPU_REPLICATE_S=220 bash benchmarks/gpu.sh     # the next session's DQN experiment and one projection
 #   GPU_LIMIT_SCALE=3 GPU_QUICK=1 bash benchmarks/gpu.sh /tmp/gpu-smoke   # every time limit x3 (a busy CPU)
 #
 # On a machine that cannot reach the package index (jax, flax, optax, chex, pandas and pyarrow there, no gymnax),
