@@ -218,15 +218,14 @@ def take_shared(batch: Any) -> Any:
 def shared_disagreements(batch: Any) -> list[str]:
     """The ``shared_field`` leaves of a stacked ``batch`` (host arrays) whose members differ, as paths (none in a
     batch that ``take_shared`` may take from its first member)."""
-    shared = jax.tree.map(
-        lambda axis, x: jax.tree.map(lambda _: axis is None, x), member_axes(batch), batch, is_leaf=lambda a: a is None
-    )
-    flat = jax.tree_util.tree_flatten_with_path(batch)[0]
-    return [
-        jax.tree_util.keystr(path)
-        for (path, leaf), is_shared in zip(flat, jax.tree.leaves(shared), strict=True)
-        if is_shared and not np.all(np.asarray(leaf) == np.asarray(leaf)[:1])
-    ]
+    differ = []
+
+    def check(path: Any, axis: Any, x: Any) -> None:
+        if axis is None and x is not None and not np.all(np.asarray(x) == np.asarray(x)[:1]):
+            differ.append(jax.tree_util.keystr(path))
+
+    jax.tree_util.tree_map_with_path(check, member_axes(batch), batch, is_leaf=lambda a: a is None)
+    return differ
 
 
 def select_compacted(
