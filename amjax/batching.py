@@ -74,15 +74,20 @@ def _broadcast(operands: Sequence[Any], batched: Sequence[Any], axis_size: int) 
     ]
 
 
-def _cond_with_vmap_rule(true_fun: Callable, false_fun: Callable, batched: Callable, lifted: Callable) -> Callable:
-    """``lax.cond(pred, true_fun, false_fun, *operands)`` whose vmap rule is ``batched(pred, *operands)`` for a
-    batched predicate and ``lifted(pred, *operands)`` for an unbatched one (a predicate every member shares: a
-    `shared_field` step counter's), both called with the vmapped axis in front of every operand leaf (and of the
-    predicate). ``lifted`` is the same helper over ``vmap``'s of the functions: one branch for the whole batch,
-    which an outer ``vmap`` batches by the helper's own rule again, not into a select."""
+def _cond_with_vmap_rule(
+    true_fun: Callable, false_fun: Callable, batched: Callable, lifted: Callable, branch: Callable | None = None
+) -> Callable:
+    """``lax.cond(pred, true_fun, false_fun, *operands)`` (or ``branch(pred, *operands)``, the same function laid
+    out otherwise) whose vmap rule is ``batched(pred, *operands)`` for a batched predicate and
+    ``lifted(pred, *operands)`` for an unbatched one (a predicate every member shares: a `shared_field` step
+    counter's), both called with the vmapped axis in front of every operand leaf (and of the predicate). ``lifted``
+    is the same helper over ``vmap``'s of the functions: one branch for the whole batch, which an outer ``vmap``
+    batches by the helper's own rule again, not into a select."""
 
     @jax.custom_batching.custom_vmap
     def cond(pred, *operands):
+        if branch is not None:
+            return branch(pred, *operands)
         return jax.lax.cond(pred, true_fun, false_fun, *operands)
 
     @cond.def_vmap
@@ -179,7 +184,27 @@ def update_where(pred: jax.Array, update: Callable, state: Any, *args: Any) -> A
     def lifted(pred: jax.Array, state: Any, *args: Any) -> Any:
         return update_where(pred, update_all, state, *args)
 
-    return _cond_with_vmap_rule(update, keep, batched, lifted)(pred, state, *args)
+    def branch(pred: jax.Array, state: Any, *args: Any) -> Any:
+        if strategy.is_gpu():
+            return _update_once(pred, update, state, *args)
+        return jax.lax.cond(pred, update, keep, state, *args)
+
+    return _cond_with_vmap_rule(update, keep, batched, lifted, branch)(pred, state, *args)
+
+
+def _update_once(pred: jax.Array, update: Callable, state: Any, *args: Any) -> Any:
+    """``update(state, *args)`` where ``pred`` holds, else ``state``, as a loop of at most one iteration: the
+    ``"gpu"`` strategy's branch of `update_where`. XLA's GPU compiler gives a conditional fresh output buffers, so
+    a loop-carried state that goes through one is copied at every iteration, into the conditional's operands and,
+    in a branch that keeps it, into its outputs (a Dueling DQN update's parameters, Adam's moments and target
+    network: four copies of every parameter); a loop updates its state in place. It reads one more predicate back
+    to the host (two where ``pred`` holds, one where not), the price of the copies it saves."""
+
+    def once(carry: tuple[jax.Array, Any]) -> tuple[jax.Array, Any]:
+        flag, state = carry
+        return flag & False, update(state, *args)  # `&`: keeps shard_map's axes
+
+    return jax.lax.while_loop(lambda carry: carry[0], once, (jnp.asarray(pred, bool), state))[1]
 
 
 _SHARED = "amjax_shared_by_batch"

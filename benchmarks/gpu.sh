@@ -14,8 +14,10 @@
 #                      cases of issue 58's table; ~37 s a case, ~6 minutes both);
 #   demo               `python -m train demo`'s wall time (~1 minute);
 #   dqn-variants       Dueling DQN at 4,096 x 2,500 (profiled) and 1,024 x 51,200 (timed), amjax with each of
-#                      GPU_VARIANTS (default command-buffers: XLA's command buffers holding conditionals and loops,
-#                      the reference compiled so too; benchmarks/gpu_profile.py's VARIANTS and COMPILER_VARIANTS)
+#                      GPU_VARIANTS (default conditional-updates: the Q-learners' branches as conditionals, which
+#                      copy the learning state on a GPU; command-buffers: XLA's command buffers holding conditionals
+#                      and loops, the reference compiled so too; benchmarks/gpu_profile.py's VARIANTS and
+#                      COMPILER_VARIANTS)
 #                      beside it and the reference, then 1,024 x 5,120 profiled (the learning updates' kernels);
 #                      ~6 minutes; records in dqn_variants.jsonl;
 #   replicate          benchmarks/replicate_time.py's projection of `amjax replicate` (GPU_REPLICATE, default
@@ -105,7 +107,7 @@ export -f profile
 export out python big small long
 part profile 360 bash -c profile
 dqn_variants() {  # Dueling DQN, amjax and its variants beside the reference: both sizes, then a short profile at 1,024
-    local p=("$python" benchmarks/gpu_profile.py --agent dqn --variants "${GPU_VARIANTS:-command-buffers}"
+    local p=("$python" benchmarks/gpu_profile.py --agent dqn --variants "${GPU_VARIANTS:-conditional-updates}"
         --out "$out/dqn_variants.jsonl")
     "${p[@]}" --configs "$small" --steps 2500 && "${p[@]}" --configs "$big" --steps "$long" --no-profile --rounds 1 &&
         "${p[@]}" --configs "$big" --steps "$dqn_steps_short" --rounds 1
@@ -149,7 +151,7 @@ rendered() {  # rendered HEADING FILE.md PART...: under HEADING, FILE (its headi
 {
     rendered "Sweeps: amjax against the plain reference, in one process (benchmarks/gpu_profile.py)" \
         "$out/profile.md" profile
-    rendered "Dueling DQN variants (benchmarks/gpu_profile.py --variants ${GPU_VARIANTS:-command-buffers})" \
+    rendered "Dueling DQN variants (benchmarks/gpu_profile.py --variants ${GPU_VARIANTS:-conditional-updates})" \
         "$out/dqn_variants.md" dqn-variants
     for agent in ppo dqn; do
         [ -e "$out/$agent.log" ] || continue  # a part not run

@@ -45,10 +45,11 @@ from benchmarks.throughput.timing import interleaved  # noqa: E402
 def _batched_counters() -> list[tuple[Any, str, Any]]:
     """The sweep programs' step counters batched like every other leaf of the state (before
     `batching.shared_field`): the learning step and the target update branch on batched predicates, a conditional
-    on "every member" and a loop for disagreeing members each (`batching.update_where`)."""
+    on "every member" and a loop for disagreeing members each (`batching.update_where`), the conditional as it was
+    then (`_conditional_updates`)."""
     from amjax.sweep import batches
 
-    return [
+    return _conditional_updates() + [
         (batches, "member_axes", lambda tree: jax.tree.map(lambda _: 0, tree)),
         (batches, "take_shared", lambda t: t),
     ]
@@ -89,8 +90,25 @@ def _pass_through() -> list[tuple[Any, str, Any]]:
     ]
 
 
+def _conditional_updates() -> list[tuple[Any, str, Any]]:
+    """`batching.update_where` with a shared predicate as one conditional under the GPU strategy too, as before
+    its loop of at most one iteration (whose state XLA's GPU compiler does not copy)."""
+    from amjax import batching
+
+    def conditional(pred, update, state, *args):
+        return jax.lax.cond(pred, update, lambda state, *_: state, state, *args)
+
+    return [(batching, "_update_once", conditional)]
+
+
 # name -> (what it changes, the (module, attribute, value) patches that make it)
 VARIANTS = {
+    "conditional-updates": (
+        "the Q-learners' learning step, target update and DRQN's target refresh as conditionals (copying the "
+        "parameters, Adam's moments and the target network at every update on a GPU) instead of loops of at most "
+        "one iteration: the layout before `batching._update_once`",
+        _conditional_updates,
+    ),
     "batched-counters": (
         "the step counters batched (before `batching.shared_field`): `update_where`'s two host round trips "
         "(every member? any disagreeing?) at the learning step and at the target update instead of one plain "
@@ -165,6 +183,27 @@ def build(case: dict[str, Any], variants: Sequence[str] = ()) -> tuple[dict[str,
                 raise
             failed[impl] = f"{type(error).__name__}: {error}"
     return built, failed
+
+
+def sweep_case(agent: str, configs: int, steps: int) -> dict[str, Any]:
+    """The throughput benchmark's case of `configs` configurations of `agent` (costs spread over the grid's), its
+    steps rounded to whole updates of its evaluation periods."""
+    case = {
+        "agent": agent,
+        "configs": configs,
+        "vanilla": False,
+        "evals": 5,
+        "eval_episodes": 10,
+        "reference_eval": True,
+        "target_chunks": 10,
+        "sb3_threads": 1,
+        "repeats": 1,
+        "cores": None,
+    }
+    case["steps"] = _round_steps(steps, case["evals"] * _steps_per_update(agent))
+    if agent == "dqn":
+        case["buffer"] = _default_buffer(case["steps"], _steps_per_update("dqn"))
+    return case
 
 
 def compiler_options(name: str | None) -> dict[str, Any] | None:
@@ -248,21 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"--variants: unknown {', '.join(unknown)}; choose from {', '.join(known)}")
 
-    case = {
-        "agent": args.agent,
-        "configs": args.configs,
-        "vanilla": False,
-        "evals": 5,
-        "eval_episodes": 10,
-        "reference_eval": True,
-        "target_chunks": 10,
-        "sb3_threads": 1,
-        "repeats": 1,
-        "cores": None,
-    }
-    case["steps"] = _round_steps(args.steps, case["evals"] * _steps_per_update(args.agent))
-    if args.agent == "dqn":
-        case["buffer"] = _default_buffer(case["steps"], _steps_per_update("dqn"))
+    case = sweep_case(args.agent, args.configs, args.steps)
     # Before this process starts JAX: the recorder asks a child process for the device, which it must not find held.
     recorder = harness.Recorder("gpu_profile", {**vars(args), "case": case}, args.out)
     device = jax.devices()[0]

@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from jax.sharding import Mesh, PartitionSpec
 
+from amjax import strategy
 from amjax.batching import (
     in_groups,
     member_axes,
@@ -185,6 +186,36 @@ def test_an_unbatched_predicate_stays_one_conditional(helper, pred, primitive_na
     assert "cond" in names or "while" in names, names
     want = jax.vmap(jax.vmap(updated_where, (None, 0, 0)))(preds, *rows)
     jax.tree.map(np.testing.assert_array_equal, jax.jit(nested)(preds, *rows), want)
+
+
+@pytest.mark.parametrize("pred", [True, False])
+def test_update_where_under_the_gpu_strategy_is_a_loop_of_at_most_one_iteration(pred, primitive_names):
+    """Under the "gpu" strategy an unbatched predicate gives a loop of at most one iteration, not a conditional
+    (XLA's GPU compiler copies a loop-carried state into a conditional's operands and through a branch that keeps
+    it; a loop it updates in place: `benchmarks/gpu_thunks.py`), with the "cpu" strategy's results: alone, under a
+    vmap and under a vmap whose members disagree."""
+    state = {"w": jax.random.normal(jax.random.PRNGKey(1), (4, 2)), "n": jnp.zeros(4, jnp.int32)}
+    scale = jnp.array([0.5, -1.0, 2.0, 3.0])
+    preds, rows = jnp.array([pred, not pred]), jax.tree.map(lambda x: jnp.stack([x, -x]), (state, scale))
+    results = {}
+    for name in ("cpu", "gpu"):
+
+        def member(p, s, c):  # defined per strategy: JAX reuses a function's trace, and the strategy is read there
+            return update_where(p, update, s, c)
+
+        batched = jax.vmap(member, (None, 0, 0))
+        with strategy.use(name):
+            names = primitive_names(jax.make_jaxpr(batched)(jnp.bool_(pred), state, scale))
+            results[name] = (
+                jax.jit(member)(jnp.bool_(pred), jax.tree.map(lambda x: x[0], state), scale[0]),
+                jax.jit(batched)(jnp.bool_(pred), state, scale),
+                jax.jit(jax.vmap(batched))(preds, *rows),
+            )
+        assert (names.count("while"), names.count("cond")) == ((1, 0) if name == "gpu" else (0, 1)), names
+    want = jax.vmap(updated_where, (None, 0, 0))(jnp.bool_(pred), state, scale)
+    jax.tree.map(np.testing.assert_array_equal, results["gpu"][1], want)
+    jax.tree.map(np.testing.assert_array_equal, results["gpu"][0], jax.tree.map(lambda x: x[0], want))
+    jax.tree.map(np.testing.assert_array_equal, results["gpu"], results["cpu"])
 
 
 @struct.dataclass

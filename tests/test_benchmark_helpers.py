@@ -126,14 +126,16 @@ def test_profile_on_a_cpu_leaves_loops_and_branches_out():
 
 def test_gpu_profile_variants_change_the_program_they_name():
     """benchmarks/gpu_profile.py --variants, on the sweep's chunk program under the GPU strategy (StableHLO loops
-    include scans): `batched-counters` batches the step counters, so the learning step and the target update each
-    add a loop for disagreeing members (the learning one holds the gradient steps' scan a second time);
+    include scans): `conditional-updates` makes the learning step and the target update conditionals again instead
+    of loops of at most one iteration; `batched-counters` (on top of that) batches the step counters, so each also
+    adds a loop for disagreeing members (the learning one holds the gradient steps' scan a second time);
     `pass-through` goes back to a learning step whose waiting branch passes the state through (one three-way
     conditional, whose "some members" branch holds that scan again) and a target update that selects (no
     conditional). The patches are gone after the block."""
     import jax
     import jax.numpy as jnp
 
+    from amjax import batching
     from amjax.agents import DQN, DQNConfig, dqn, stack_configs
     from amjax.sweep import batches
     from benchmarks import gpu_profile
@@ -150,12 +152,16 @@ def test_gpu_profile_variants_change_the_program_they_name():
             batches._compiled_programs.cache_clear()  # the next variant traces afresh
         return text.count("stablehlo.case") + text.count("stablehlo.if"), text.count("stablehlo.while")
 
-    originals = (dqn.update_target, batches.member_axes, batches.take_shared)
+    originals = (dqn.update_target, batches.member_axes, batches.take_shared, batching._update_once)
     conds, loops = control_flow(None)
-    counted = {name: control_flow(name) for name in ("batched-counters", "pass-through")}
+    counted = {name: control_flow(name) for name in ("conditional-updates", "batched-counters", "pass-through")}
     differences = {name: (c - conds, n - loops) for name, (c, n) in counted.items()}
-    assert differences == {"batched-counters": (0, 3), "pass-through": (-1, 1)}, (conds, loops, counted)
-    assert (dqn.update_target, batches.member_axes, batches.take_shared) == originals
+    assert differences == {
+        "conditional-updates": (2, -2),
+        "batched-counters": (2, 1),
+        "pass-through": (1, -1),
+    }, (conds, loops, counted)
+    assert (dqn.update_target, batches.member_axes, batches.take_shared, batching._update_once) == originals
 
 
 def test_gpu_profile_compiler_variants_compile_both_implementations(monkeypatch):
@@ -202,6 +208,58 @@ def test_gpu_profile_compiler_variants_compile_both_implementations(monkeypatch)
     assert sorted(failed) == ["amjax+broken", "reference+broken"]
     assert compiled.count(("amjax", options)) == compiled.count(("reference", options)) == 1
     assert compiled.count(("amjax", None)) == 2 and compiled.count(("reference", None)) == 1
+
+
+# The shape of XLA's GPU thunk sequence dump (`*thunk_sequence_after_thunk_passes.txt`), shortened: a loop whose
+# condition is printed unindented, an update loop holding a command buffer, a one-iteration loop with an empty
+# condition ("No thunks." on the body's line) and a conditional with a branch of copies.
+THUNK_SEQUENCE = """\
+000: kCommandBuffer [source       | next=026 (1)]
+    001: kCustomKernel [source        | next=002 (1)] loop_add_fusion grid: [32, 1, 1] threads: [128, 1, 1]
+    002: kCopy         [prev=001 (1)  | sink        ] kCopy
+026: kWhile         [prev=000 (1) | next=000 (1)]
+condition:
+    027: kCustomKernel [source | sink] loop_compare_fusion grid: [1, 1, 1] threads: [1, 1, 1]
+  body:
+    000: kCommandBuffer      [source       | next=050 (2)]
+        028: kCopy         [source       | next=033 (5)] kCopy
+        033: kCustomKernel [prev=032 (1) | sink        ] loop_dynamic_update_slice_fusion grid: [32, 1, 1]
+        034: kCustomKernel [prev=031 (3) | sink        ] input_reduce_fusion grid: [512, 1, 1]
+    048: kDynamicSliceFusion [source       | next=050 (1)] params=1, results=1
+        049: kCopy [source | sink] kCopy
+    071: kWhile              [prev=000 (1) | next=118 (1)]
+condition:
+        No thunks.      body:
+        000: kCommandBuffer [source | sink]
+            072: kCustomKernel [source        | next=073 (1)] gemm_fusion_dot grid: [32768, 1, 1]
+            073: kCopy         [prev=072 (1)  | sink        ] kCopy
+    216: kConditional   [prev=000 (1) | next=233 (1)]
+      false_branch:
+        000: kCommandBuffer [source | sink]
+            144: kCustomKernel [source        | next=145 (1) ] loop_slice_fusion grid: [32, 1, 1]
+      true_branch:
+        000: kCommandBuffer [source | sink]
+            190: kCopy [source | sink] kCopy
+            191: kCopy [source | sink] kCopy
+    217: kCustomKernel [source | sink] loop_add_fusion_9 grid: [1, 1, 1] threads: [1, 1, 1]
+"""
+
+
+def test_gpu_thunks_counts_launches_per_loop_iteration_and_branch():
+    """benchmarks/gpu_thunks.py's reading of a thunk sequence: launches at the top level and per loop iteration (a
+    command buffer's commands and a dynamic-slice fusion's copy included, nested loops and branches listed apart),
+    each conditional's per branch."""
+    from benchmarks import gpu_thunks
+
+    thunks = gpu_thunks.parse_thunks(THUNK_SEQUENCE)
+    assert [t.kind for t in thunks] == ["kCommandBuffer", "kWhile"]
+    assert gpu_thunks.launches(thunks) == (1, 1)
+    assert gpu_thunks.report(thunks) == [
+        "- loop: 3 kernels + 2 copies per iteration",
+        "  - loop: 1 kernels + 1 copies per iteration",
+        "  - conditional: false_branch: 1 kernels + 0 copies; true_branch: 0 kernels + 2 copies",
+    ]
+    assert gpu_thunks.SPEC.read_text().count("core_count: 132") == 1  # the target it compiles for ships with it
 
 
 def test_replicate_time_says_what_a_timed_out_case_measured():

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from amjax import strategy
 from amjax.agents import (
     ALGORITHMS,
     DQN,
@@ -488,9 +489,9 @@ SHARED_COUNTER_CONFIGS = {
 @pytest.mark.parametrize(("name", "branches"), [("dqn", 2), ("drqn", 3)])
 def test_a_sweep_batch_branches_once_on_its_shared_step_counter(name, branches, primitive_names):
     """In a sweep batch the step counter goes in unbatched (`batching.shared_field`): each branch of an update
-    (learning has started, the target update; DRQN's cached target values) is one conditional over the batch, with
-    no loop for disagreeing members and no reduction of the predicate (a GPU reads each predicate back to the host
-    once, as a plain implementation with one counter does). With the counter batched, the loops are there."""
+    (learning has started, the target update; DRQN's cached target values) is one conditional over the batch (under
+    the "gpu" strategy one loop of at most one iteration), with no loop for disagreeing members and no reduction of
+    the predicate, as a plain implementation with one counter has. With the counter batched, the loops are there."""
     algo = ALGORITHMS[name]
     configs = stack_configs([SHARED_COUNTER_CONFIGS[name].replace(cost=c) for c in (0.1, 0.3)])
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
@@ -506,6 +507,10 @@ def test_a_sweep_batch_branches_once_on_its_shared_step_counter(name, branches, 
     assert shared.count("cond") == branches and "while" not in shared and "reduce_and" not in shared
     batched = primitives(0, states)
     assert batched.count("while") == branches and batched.count("reduce_and") == branches
+    # The "gpu" strategy lays each branch out as a loop of at most one iteration (`batching.update_where`).
+    with strategy.use("gpu"):
+        shared = primitives(member_axes(states), jax.eval_shape(take_shared, states))
+    assert shared.count("while") == branches and "cond" not in shared and "reduce_and" not in shared
 
 
 @pytest.mark.parametrize("name", sorted(SHARED_COUNTER_CONFIGS))

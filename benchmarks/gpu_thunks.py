@@ -1,0 +1,183 @@
+"""What a GPU would run, read without one: amjax's sweep chunk program and the plain reference compiled for an NVIDIA
+GPU on this machine (XLA's deviceless compilation), and XLA's thunk sequence (the kernels, copies, loops and
+conditionals the GPU runtime launches) summarised per loop iteration and per branch.
+
+    pip install "jax-cuda13-plugin==$(python -c 'import jax; print(jax.__version__)')" \\
+        "jax-cuda13-pjrt==$(python -c 'import jax; print(jax.__version__)')"   # the compiler (~130 MB), no GPU needed
+    python benchmarks/gpu_thunks.py --agent dqn --configs 4096 --steps 2500
+    python benchmarks/gpu_thunks.py --agent dqn --variants conditional-updates    # a layout of gpu_profile.VARIANTS
+
+No CUDA libraries are needed (the plugin's version check, which looks for cuDNN, is skipped: JAX_SKIP_CUDA_
+CONSTRAINTS_CHECK). The target is `gpu_specs/h100_sxm.txtpb`, a few fields of XLA's H100 SXM description
+(`xla/backends/gpu/target_config/specs/h100_sxm.txtpb` in openxla/xla). Without the device there is no autotuning,
+so a matrix product's kernels may differ from a real run's; loops, branches and copies come from the same passes.
+It counts launches, not time: `gpu_profile.py` on a GPU times them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+if not __package__:  # run as a file: the repository importable, for `benchmarks.*`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+SPEC = Path(__file__).with_name("gpu_specs") / "h100_sxm.txtpb"
+
+_THUNK = re.compile(r"^(\s*)\d+: (k\w+)")
+_MARKER = re.compile(r"^(\s*)(?:No thunks\.\s*)?(condition|body|true_branch|false_branch|branch_\d+):\s*$")
+
+
+@dataclass
+class Thunk:
+    """One entry of XLA's thunk sequence; a loop's or conditional's children are its parts (condition, body,
+    branches), a command buffer's its commands."""
+
+    kind: str
+    children: list[Thunk] = field(default_factory=list)
+
+
+def parse_thunks(text: str) -> list[Thunk]:
+    """The thunk tree of a `*thunk_sequence_after_thunk_passes.txt` dump (nesting by indentation; a loop's
+    "condition:" is printed unindented, and an empty condition's "No thunks." shares a line with "body:")."""
+    root = Thunk("root")
+    stack: list[tuple[int, Thunk]] = [(-1, root)]
+    loop_indent = 0
+    for line in text.splitlines():
+        match = _THUNK.match(line) or _MARKER.match(line)
+        if not match:
+            continue
+        indent, kind = len(match.group(1)), match.group(2)
+        if kind == "kWhile":
+            loop_indent = indent
+        if match.re is _MARKER and (kind == "condition" or "No thunks" in line):
+            indent = loop_indent + 2
+        node = Thunk(kind)
+        while stack[-1][0] >= indent:
+            stack.pop()
+        stack[-1][1].children.append(node)
+        stack.append((indent, node))
+    return root.children
+
+
+def launches(thunks: list[Thunk]) -> tuple[int, int]:
+    """(kernels, copies) one run of `thunks` launches, its loops and conditionals left out (`report` lists them)."""
+    kernels = copies = 0
+    for thunk in thunks:
+        if thunk.kind == "kCopy":
+            copies += 1
+        elif thunk.kind == "kCommandBuffer" or (thunk.kind == "kDynamicSliceFusion" and thunk.children):
+            k, c = launches(thunk.children)
+            kernels, copies = kernels + k, copies + c
+        elif thunk.kind not in ("kWhile", "kConditional"):
+            kernels += 1
+    return kernels, copies
+
+
+def report(thunks: list[Thunk], depth: int = 0) -> list[str]:
+    """Markdown list lines: each loop's kernels and copies per iteration and each conditional's per branch."""
+    lines, pad = [], "  " * depth
+    for thunk in thunks:
+        parts = {part.kind: part.children for part in thunk.children}
+        if thunk.kind == "kWhile":
+            kernels, copies = launches(parts.get("body", []))
+            lines.append(f"{pad}- loop: {kernels} kernels + {copies} copies per iteration")
+            lines += report(parts.get("body", []), depth + 1)
+        elif thunk.kind == "kConditional":
+            branches = [
+                f"{name}: {k} kernels + {c} copies" for name, (k, c) in ((n, launches(t)) for n, t in parts.items())
+            ]
+            lines.append(f"{pad}- conditional: " + "; ".join(branches))
+            for body in parts.values():
+                lines += report(body, depth + 1)
+        elif thunk.kind == "kCommandBuffer":
+            lines += report(thunk.children, depth)
+    return lines
+
+
+def gpu_device(spec: Path = SPEC) -> Any:
+    """A device of a one-GPU CUDA topology described by `spec`, to compile for (no GPU needed)."""
+    from jax.experimental import topologies
+
+    try:
+        topology = topologies.get_topology_desc("gpu", "cuda", target_config=spec.read_text(), topology="1x1x1")
+    except Exception as error:
+        raise SystemExit(
+            f"benchmarks/gpu_thunks.py: no CUDA compiler ({error}); install jax-cuda13-plugin and jax-cuda13-pjrt "
+            "at this jax's version (the module docstring shows how)"
+        ) from error
+    return topology.devices[0]
+
+
+def compile_programs(case: dict[str, Any], device: Any, variant: str | None) -> None:
+    """amjax's chunk program (`variant` patched in) and the reference for `case`, compiled for `device`; XLA dumps
+    their thunk sequences."""
+    import jax
+    import jax.numpy as jnp
+
+    from amjax.agents import ALGORITHMS, stack_configs
+    from amjax.sweep.batches import _compiled_programs, chunk_evals, compiled_programs
+    from amjax.sweep.devices import config_sharding
+    from benchmarks import gpu_profile
+    from benchmarks.throughput.runners import BENCHMARKS, agent_config, costs
+
+    configs = [agent_config(case, cost).validate() for cost in costs(case)]
+    stacked = stack_configs(configs)
+    keys = jnp.stack([jax.random.PRNGKey(seed) for seed in range(case["configs"])])
+    sharding = config_sharding([device])
+
+    def placed(tree: Any) -> Any:
+        return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), tree)
+
+    with gpu_profile.variant(variant):
+        init, chunk = compiled_programs(
+            ALGORITHMS[case["agent"]], chunk_evals(configs[0].num_evals, case["target_chunks"]), (device,), "gpu"
+        )
+        chunk.lower(placed(stacked), placed(jax.eval_shape(init, stacked, keys))).compile()
+        _compiled_programs.cache_clear()
+    sys.path.insert(0, str(BENCHMARKS))
+    make_train = __import__(f"reference_{case['agent']}").make_train
+    train = jax.jit(jax.vmap(make_train(agent_config(case, 0.0).validate(), vanilla=False, evaluate=True)))
+    single = jax.sharding.SingleDeviceSharding(device)
+    args = (keys, jnp.asarray(costs(case), jnp.float32))
+    specs = [jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=single) for a in args]
+    train.trace(*specs).lower(lowering_platforms=("cuda",)).compile()
+
+
+def main(argv: list[str] | None = None) -> int:
+    from benchmarks import gpu_profile
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--agent", choices=("ppo", "dqn"), default="dqn")
+    parser.add_argument("--configs", type=int, default=4096)
+    parser.add_argument("--steps", type=int, default=2500)
+    parser.add_argument("--variant", choices=sorted(gpu_profile.VARIANTS), help="amjax with this change patched in")
+    parser.add_argument("--spec", type=Path, default=SPEC, help="the GPU's XLA target description (text proto)")
+    args = parser.parse_args(argv)
+
+    dump = Path(tempfile.mkdtemp(prefix="amjax_gpu_thunks_"))
+    # Before JAX starts: the plugin's version check wants cuDNN, which compiling does not; XLA dumps every program.
+    os.environ.setdefault("JAX_SKIP_CUDA_CONSTRAINTS_CHECK", "1")
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_dump_to={dump}".strip()
+    case = gpu_profile.sweep_case(args.agent, args.configs, args.steps)
+    compile_programs(case, gpu_device(args.spec), args.variant)
+    amjax = "amjax" + (f"+{args.variant}" if args.variant else "")
+    print(f"# {args.agent} {args.configs} x {case['steps']}: launches on {args.spec.stem}, compiled without a GPU\n")
+    for name, module in ((amjax, "jit_chunk_batch"), ("reference", "jit_train")):
+        text = next(dump.glob(f"*.{module}.thunk_sequence_after_thunk_passes.txt")).read_text()
+        thunks = parse_thunks(text)
+        kernels, copies = launches(thunks)
+        print(f"## {name}\n\n- program: {kernels} kernels + {copies} copies outside its loops")
+        print("\n".join(report(thunks)) + "\n")
+    print(f"XLA's dumps: {dump}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
