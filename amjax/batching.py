@@ -155,15 +155,15 @@ def update_where(pred: jax.Array, update: Callable, state: Any, *args: Any) -> A
     """``update(state, *args)`` (a new state of the same structure) where ``pred`` holds, else ``state`` unchanged:
     ``lax.cond(pred, update, keep, state, *args)`` that stays a branch under ``vmap`` and updates in place.
 
-    With an unbatched predicate (a ``shared_field`` step counter's, as in a sweep batch) it is one conditional over
-    the batch. With a batched one, a conditional runs ``update`` for the batch when every member takes it (else
-    keeps the state), then a loop of at most one iteration updates and selects per member when they disagree. A
-    `uniform_cond` with a pass-through branch copies what passes through: XLA compiles a conditional whose
-    branches disagree among several into fresh output buffers, which a loop-carried state (a learning step's
-    parameters and optimiser state, DRQN's replay buffer) then copies back into its own at every iteration. Here
-    the conditional is all-or-nothing and the disagreeing case is a loop, which XLA updates in place; a batch that
-    agrees pays neither the copy nor a select. Outer
-    ``vmap`` levels reduce their predicates the same way.
+    With an unbatched predicate (a ``shared_field`` step counter's, as in a sweep batch) it is one branch over the
+    batch: a conditional, or under the ``"gpu"`` strategy a loop of at most one iteration (`_update_once`). With a
+    batched one, that branch runs ``update`` for the batch when every member takes it (else keeps the state), then
+    a loop of at most one iteration updates and selects per member when they disagree. A `uniform_cond` with a
+    pass-through branch copies what passes through: XLA compiles a conditional whose branches disagree among
+    several into fresh output buffers, which a loop-carried state (a learning step's parameters and optimiser
+    state, DRQN's replay buffer) then copies back into its own at every iteration. Here the branch is
+    all-or-nothing and the disagreeing case is a loop, which XLA updates in place; a batch that agrees pays neither
+    the copy nor a select. Outer ``vmap`` levels reduce their predicates the same way.
     """
     update = _traced(update, state, *args)
     update_all = jax.vmap(update)

@@ -5,7 +5,7 @@ conditionals the GPU runtime launches) summarised per loop iteration and per bra
     pip install "jax-cuda13-plugin==$(python -c 'import jax; print(jax.__version__)')" \\
         "jax-cuda13-pjrt==$(python -c 'import jax; print(jax.__version__)')"   # the compiler (~130 MB), no GPU needed
     python benchmarks/gpu_thunks.py --agent dqn --configs 4096 --steps 2500
-    python benchmarks/gpu_thunks.py --agent dqn --variants conditional-updates    # a layout of gpu_profile.VARIANTS
+    python benchmarks/gpu_thunks.py --agent dqn --variant conditional-updates    # a layout of gpu_profile.VARIANTS
 
 No CUDA libraries are needed (the plugin's version check, which looks for cuDNN, is skipped: JAX_SKIP_CUDA_
 CONSTRAINTS_CHECK). The target is `gpu_specs/h100_sxm.txtpb`, a few fields of XLA's H100 SXM description
@@ -119,17 +119,14 @@ def compile_programs(case: dict[str, Any], device: Any, variant: str | None) -> 
     """amjax's chunk program (`variant` patched in) and the reference for `case`, compiled for `device`; XLA dumps
     their thunk sequences."""
     import jax
-    import jax.numpy as jnp
 
-    from amjax.agents import ALGORITHMS, stack_configs
+    from amjax.agents import ALGORITHMS
     from amjax.sweep.batches import _compiled_programs, chunk_evals, compiled_programs
     from amjax.sweep.devices import config_sharding
     from benchmarks import gpu_profile
-    from benchmarks.throughput.runners import BENCHMARKS, agent_config, costs
+    from benchmarks.throughput.runners import case_batch, reference_program
 
-    configs = [agent_config(case, cost).validate() for cost in costs(case)]
-    stacked = stack_configs(configs)
-    keys = jnp.stack([jax.random.PRNGKey(seed) for seed in range(case["configs"])])
+    configs, stacked, keys = case_batch(case)
     sharding = config_sharding([device])
 
     def placed(tree: Any) -> Any:
@@ -141,11 +138,8 @@ def compile_programs(case: dict[str, Any], device: Any, variant: str | None) -> 
         )
         chunk.lower(placed(stacked), placed(jax.eval_shape(init, stacked, keys))).compile()
         _compiled_programs.cache_clear()
-    sys.path.insert(0, str(BENCHMARKS))
-    make_train = __import__(f"reference_{case['agent']}").make_train
-    train = jax.jit(jax.vmap(make_train(agent_config(case, 0.0).validate(), vanilla=False, evaluate=True)))
+    train, *args = reference_program(case)
     single = jax.sharding.SingleDeviceSharding(device)
-    args = (keys, jnp.asarray(costs(case), jnp.float32))
     specs = [jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=single) for a in args]
     train.trace(*specs).lower(lowering_platforms=("cuda",)).compile()
 

@@ -35,20 +35,47 @@ class SweepPrograms:
     compile_s: float
 
 
+def case_batch(case: dict[str, Any]) -> tuple[list[Any], Any, Any]:
+    """The case's agent configs (one per cost), stacked, and one key per configuration (seeds 0, 1, ...)."""
+    import jax
+    import jax.numpy as jnp
+
+    from amjax.agents import stack_configs
+
+    configs = [agent_config(case, cost).validate() for cost in costs(case)]
+    keys = jnp.stack([jax.random.PRNGKey(seed) for seed in range(case["configs"])])
+    return configs, stack_configs(configs), keys
+
+
+def reference_program(case: dict[str, Any]) -> tuple[Any, Any, Any]:
+    """benchmarks/reference_{ppo,dqn}.py's `jax.jit(jax.vmap(train))` for the case, and its arguments (keys,
+    costs)."""
+    import jax
+    import jax.numpy as jnp
+
+    sys.path.insert(0, str(BENCHMARKS))
+    if case["agent"] == "ppo":
+        from reference_ppo import make_train
+    else:
+        from reference_dqn import make_train
+
+    config = agent_config(case, 0.0).validate()
+    train = jax.jit(jax.vmap(make_train(config, vanilla=case["vanilla"], evaluate=case["reference_eval"])))
+    keys = jnp.stack([jax.random.PRNGKey(seed) for seed in range(case["configs"])])
+    return train, keys, jnp.asarray(costs(case), jnp.float32)
+
+
 def _compile_amjax(case: dict[str, Any], compiler_options: dict[str, Any] | None = None) -> SweepPrograms:
     """Stack the case's configs and lower and compile the sweep runner's two programs for them (with XLA's
     `compiler_options`, if any: `Lowered.compile`'s), with arrays placed
     as the runner places them."""
     import jax
-    import jax.numpy as jnp
 
-    from amjax.agents import ALGORITHMS, stack_configs
+    from amjax.agents import ALGORITHMS
     from amjax.sweep.batches import chunk_evals, compiled_programs
     from amjax.sweep.devices import config_sharding, sweep_devices
 
-    configs = [agent_config(case, cost).validate() for cost in costs(case)]
-    stacked = stack_configs(configs)
-    keys = jnp.stack([jax.random.PRNGKey(seed) for seed in range(case["configs"])])
+    configs, stacked, keys = case_batch(case)
     evals_per_chunk = chunk_evals(configs[0].num_evals, case["target_chunks"])
     devices = sweep_devices()
     if case["configs"] % len(devices):
@@ -160,20 +187,9 @@ def compile_reference(
     `compiler_options`, if any): the compiled program, a `run` that trains once (the median last test return, or None
     without evaluation) and the compile time."""
     import jax
-    import jax.numpy as jnp
     import numpy as np
 
-    sys.path.insert(0, str(BENCHMARKS))
-    if case["agent"] == "ppo":
-        from reference_ppo import make_train
-    else:
-        from reference_dqn import make_train
-
-    config = agent_config(case, 0.0).validate()
-    train = jax.jit(jax.vmap(make_train(config, vanilla=case["vanilla"], evaluate=case["reference_eval"])))
-    keys = jnp.stack([jax.random.PRNGKey(seed) for seed in range(case["configs"])])
-    case_costs = jnp.asarray(costs(case), jnp.float32)
-
+    train, keys, case_costs = reference_program(case)
     start = time.perf_counter()
     compiled = train.lower(keys, case_costs).compile(compiler_options)
     compile_s = time.perf_counter() - start
