@@ -123,14 +123,23 @@ def test_next_environment_compiles_while_one_trains(tmp_path, monkeypatch):
     events = []
     compile_batch, write_report = executors.compile_batch, amjax.analysis.write_report
 
+    next_env_compile_began = threading.Event()
+
     def logged_compile(batch, *args):
         events.append(("compile", batch.runs[0].env, batch.name, threading.current_thread().name))
+        if batch.runs[0].env == "Acrobot-v1":
+            next_env_compile_began.set()
         return compile_batch(batch, *args)
 
     def logged_report(folder, **kwargs):
+        if folder.name == "CartPole-v0":  # CartPole trained; waits (held) for Acrobot's compile to begin on its own
+            began_before_report.append(next_env_compile_began.wait(timeout=300))
         events.append(("report", folder.name))
         return write_report(folder, **kwargs)
 
+    began_before_report = []
+    # Compiling ahead pauses past half the memory-map limit; a test worker that ran many tests may be there.
+    monkeypatch.setattr(executors, "maps_past_half", lambda: False)
     monkeypatch.setattr(executors, "compile_batch", logged_compile)
     monkeypatch.setattr(amjax.analysis, "write_report", logged_report)
     args = [
@@ -152,7 +161,7 @@ def test_next_environment_compiles_while_one_trains(tmp_path, monkeypatch):
     compiles = [e for e in events if e[0] == "compile"]
     assert [e[1] for e in compiles] == ["CartPole-v0"] * 2 + ["Acrobot-v1"] * 2  # vanilla and costed PPO each
     assert len({e[2] for e in compiles}) == 4 and {e[3] for e in compiles} == {"amjax-compile-ahead"}
-    assert events.index(compiles[2]) < events.index(("report", "CartPole-v0"))
+    assert began_before_report == [True] and events.index(compiles[2]) < events.index(("report", "CartPole-v0"))
     assert events[-1] == ("report", "Acrobot-v1")
     assert pd.read_csv(tmp_path / "paper_table.csv").env.tolist() == ["CartPole-v0"] * 5 + ["Acrobot-v1"] * 5
     events.clear()
