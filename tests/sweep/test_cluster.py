@@ -47,7 +47,10 @@ RESCORED_COLUMNS = ["best_policy_return", "best_policy_raw_return", "best_policy
 
 
 def _part_rows(out: Path, agent: str) -> int:
-    return sum(len(pd.read_parquet(p)) for p in (out / "parts").glob(f"{agent}-*/results.parquet"))
+    """Rows written so far in `agent`'s parts, read as the driver reads them (`read_table`: one open file, never
+    torn by a worker's atomic replace)."""
+    tables = (read_table(p.with_suffix("")) for p in (out / "parts").glob(f"{agent}-*/results.parquet"))
+    return sum(len(table) for table in tables if table is not None)
 
 
 def _assert_same_results(out: Path, local) -> None:
@@ -119,22 +122,29 @@ def test_cluster_and_local_runs_resume_each_other_through_kills(tmp_path, stop_s
     assert not (out / "parts").exists()
     assert len(pd.read_parquet(out / "results.parquet")) > local_rows
 
-    killed = []
+    killed, errors = [], []
+    dqn_rows = len(SPEC.costs) * len(SPEC.seeds) * (SPEC.total_timesteps // SPEC.eval_every)  # its one batch's
 
     def kill_the_dqn_worker():
-        seen = None
-        while time.monotonic() < deadline and not killed:
-            for part in (out / "parts").glob("dqn-*"):
-                if (part / "worker.json").exists() and (part / "results.parquet").exists():
-                    rows = len(pd.read_parquet(part / "results.parquet"))
-                    seen = rows if seen is None else seen
-                    if rows > seen:  # a chunk trained by this worker
-                        killed.append(json.loads((part / "worker.json").read_text())["pid"])
-                        os.kill(killed[0], signal.SIGKILL)
-            time.sleep(0.05)
+        seen, deadline = None, time.monotonic() + 600  # its own: the steps above took part of theirs
+        try:
+            while time.monotonic() < deadline and not killed:
+                for part in (out / "parts").glob("dqn-*"):
+                    table = read_table(part / "results")  # one open file: never torn by the worker's replace
+                    if (part / "worker.json").exists() and table is not None:
+                        rows = len(table)
+                        seen = rows if seen is None else seen
+                        if seen < rows < dqn_rows:  # a chunk trained by this worker, and more to come
+                            killed.append(json.loads((part / "worker.json").read_text())["pid"])
+                            os.kill(killed[0], signal.SIGKILL)
+                time.sleep(0.05)
+        except BaseException as error:  # raised in the test's thread below
+            errors.append(error)
 
     threading.Thread(target=kill_the_dqn_worker, daemon=True).start()
     result = run_sweep(SPEC, out, progress=False, target_chunks=8, checkpoint_every_s=0, cluster="local:2")
+    if errors:
+        raise errors[0]
     assert killed
     reference = run_sweep(SPEC, tmp_path / "local", progress=False, target_chunks=8)
     _assert_same_results(out, reference)
@@ -259,6 +269,8 @@ def test_a_part_read_while_its_worker_replaces_it_is_never_torn(tmp_path):
     stem = tmp_path / "results"
     stop = threading.Event()
 
+    writes = []
+
     def worker() -> None:
         rows = 10
         while not stop.is_set():
@@ -267,16 +279,17 @@ def test_a_part_read_while_its_worker_replaces_it_is_never_torn(tmp_path):
                 stem,
                 pd.DataFrame({"config_id": ["c0"] * rows, "env_steps": np.arange(rows), "eval_return": np.zeros(rows)}),
             )
+            writes.append(rows)
 
     writer = threading.Thread(target=worker)
     writer.start()
-    reads, deadline = 0, time.monotonic() + 4.0
+    reads, deadline = 0, time.monotonic() + 60  # the counts below, not a speed: a loaded machine only takes longer
     try:
-        while time.monotonic() < deadline:
+        while (reads < 200 or len(writes) < 50) and time.monotonic() < deadline:
             table = read_table(stem)
             assert table is None or (len(table) - 10) % 37 == 0
             reads += 1
     finally:
         stop.set()
         writer.join()
-    assert reads > 100
+    assert reads >= 200 and len(writes) >= 50

@@ -32,6 +32,7 @@ import pytest
 
 from amjax.files import PARTIAL_SUFFIX
 from amjax.sweep import SweepSpec, run_sweep
+from amjax.sweep.cluster import LOGS
 from train.cli import main
 
 SPEC = SweepSpec(
@@ -310,14 +311,24 @@ def test_every_cluster_driver_commit_point_recovers(tmp_path_factory, monkeypatc
     full = root / "full"
     options = {**OPTIONS, "cluster": "local:2"}
 
+    waited = []
+
     def both_parts_finished(target: Path) -> None:
-        """The driver's first merge waits for both workers: every later copy needs no job to finish it."""
-        if target.name == "metadata.json":
+        """The driver's first merge waits for both workers, their parts finished and submitit's result pickles
+        written (a worker renames its `.save_tmp` after its part's marker: a copy of `out` then could race it):
+        every later copy needs no job to finish it."""
+        if target.name == "metadata.json" or waited:
             return
         deadline = time.monotonic() + 900
-        while len(list((full / "parts").glob("*/finished/*.json"))) < 2 and not (full / "finished").exists():
+        logs = full / LOGS
+        while (
+            len(list((full / "parts").glob("*/finished/*.json"))) < 2
+            or len(list(logs.glob("*_result.pkl"))) < 2
+            or any(logs.glob("*.save_tmp"))
+        ):
             assert time.monotonic() < deadline, "the workers did not finish"
             time.sleep(0.2)
+        waited.append(True)
 
     points = record_commit_points(
         lambda: run_sweep(SPEC, full, **options), full, root / "points", monkeypatch, before_first=both_parts_finished

@@ -297,9 +297,10 @@ def test_ctrl_c_stops_with_a_message_and_the_rerun_resumes(tmp_path, tiny_sweep_
     command = [sys.executable, "-m", "train", "sweep", *tiny_sweep_flags(steps=32768, seeds=2), "--out", str(out)]
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}
     process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 240
+    deadline = time.monotonic() + 480
     while not (out / "results.parquet").exists() and time.monotonic() < deadline and process.poll() is None:
         time.sleep(0.05)
+    assert process.poll() is None and (out / "results.parquet").exists(), "no rows written to interrupt"
     process.send_signal(signal.SIGINT)
     _, stderr = process.communicate(timeout=240)
     assert process.returncode == 130, stderr
