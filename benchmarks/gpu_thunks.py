@@ -1,6 +1,9 @@
 """What a GPU would run, read without one: amjax's sweep chunk program and the plain reference compiled for an NVIDIA
 GPU on this machine (XLA's deviceless compilation), and XLA's thunk sequence (the kernels, copies, loops and
-conditionals the GPU runtime launches) summarised per loop iteration and per branch.
+conditionals the GPU runtime launches) summarised per loop iteration and per branch, each loop with its trip count
+where XLA knows it. A loop of unknown count and a conditional each make the host wait for the device (it copies
+the predicate or branch index back before it launches more): a loop once per run of its condition, a conditional
+once.
 
     pip install "jax-cuda13-plugin==$(python -c 'import jax; print(jax.__version__)')" \\
         "jax-cuda13-pjrt==$(python -c 'import jax; print(jax.__version__)')"   # the compiler (~130 MB), no GPU needed
@@ -30,7 +33,7 @@ if not __package__:  # run as a file: the repository importable, for `benchmarks
 
 SPEC = Path(__file__).with_name("gpu_specs") / "h100_sxm.txtpb"
 
-_THUNK = re.compile(r"^(\s*)\d+: (k\w+)")
+_THUNK = re.compile(r"^(\s*)(\d+): (k\w+)")
 _MARKER = re.compile(r"^(\s*)(?:No thunks\.\s*)?(condition|body|true_branch|false_branch|branch_\d+):\s*$")
 
 
@@ -41,6 +44,7 @@ class Thunk:
 
     kind: str
     children: list[Thunk] = field(default_factory=list)
+    id: int | None = None  # its thunk_id (`thunk_metadata.txt` names the HLO instruction)
 
 
 def parse_thunks(text: str) -> list[Thunk]:
@@ -53,12 +57,12 @@ def parse_thunks(text: str) -> list[Thunk]:
         match = _THUNK.match(line) or _MARKER.match(line)
         if not match:
             continue
-        indent, kind = len(match.group(1)), match.group(2)
+        indent, kind = len(match.group(1)), match.group(match.lastindex)
         if kind == "kWhile":
             loop_indent = indent
         if match.re is _MARKER and (kind == "condition" or "No thunks" in line):
             indent = loop_indent + 2
-        node = Thunk(kind)
+        node = Thunk(kind, id=int(match.group(2)) if match.re is _THUNK else None)
         while stack[-1][0] >= indent:
             stack.pop()
         stack[-1][1].children.append(node)
@@ -80,24 +84,47 @@ def launches(thunks: list[Thunk]) -> tuple[int, int]:
     return kernels, copies
 
 
-def report(thunks: list[Thunk], depth: int = 0) -> list[str]:
-    """Markdown list lines: each loop's kernels and copies per iteration and each conditional's per branch."""
-    lines, pad = [], "  " * depth
+def trip_counts(hlo: str, metadata: str) -> dict[int, int | None]:
+    """{thunk_id: iterations} of each loop: XLA's `known_trip_count` of its `while` instruction in the optimised HLO
+    (`*_gpu_after_optimizations.txt`), None where XLA does not know it. A loop of known count runs its body that many
+    times; any other loop copies its predicate to the host and waits for it after every run of its condition."""
+    counts = {}
+    for line in hlo.splitlines():
+        if (name := re.match(r"\s*(?:ROOT )?%(\S+) = .* while\(", line)) is not None:
+            known = re.search(r'"known_trip_count":\{"n":"(\d+)"', line)
+            counts[name.group(1)] = int(known.group(1)) if known else None
+    return {
+        int(match.group(2)): counts[match.group(1)]
+        for match in re.finditer(r'profile_annotation: "([^"]+)"\s*thunk_id: (\d+)', metadata)
+        if match.group(1) in counts
+    }
+
+
+def report(thunks: list[Thunk], depth: int = 0, trips: dict[int, int | None] | None = None) -> list[str]:
+    """Markdown list lines: each loop's kernels and copies per iteration (its trip count where `trips` has it) and
+    each conditional's per branch."""
+    lines, pad, trips = [], "  " * depth, trips or {}
     for thunk in thunks:
         parts = {part.kind: part.children for part in thunk.children}
         if thunk.kind == "kWhile":
             kernels, copies = launches(parts.get("body", []))
-            lines.append(f"{pad}- loop: {kernels} kernels + {copies} copies per iteration")
-            lines += report(parts.get("body", []), depth + 1)
+            if thunk.id not in trips:
+                when = ""
+            elif trips[thunk.id] is None:
+                when = " (count unknown: a host read per condition)"
+            else:
+                when = f" ({trips[thunk.id]} iterations)"
+            lines.append(f"{pad}- loop{when}: {kernels} kernels + {copies} copies per iteration")
+            lines += report(parts.get("body", []), depth + 1, trips)
         elif thunk.kind == "kConditional":
             branches = [
                 f"{name}: {k} kernels + {c} copies" for name, (k, c) in ((n, launches(t)) for n, t in parts.items())
             ]
-            lines.append(f"{pad}- conditional: " + "; ".join(branches))
+            lines.append(f"{pad}- conditional (the host reads its branch): " + "; ".join(branches))
             for body in parts.values():
-                lines += report(body, depth + 1)
+                lines += report(body, depth + 1, trips)
         elif thunk.kind == "kCommandBuffer":
-            lines += report(thunk.children, depth)
+            lines += report(thunk.children, depth, trips)
     return lines
 
 
@@ -165,10 +192,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"# {args.agent} {args.configs} x {case['steps']}: launches on {args.spec.stem}, compiled without a GPU\n")
     for name, module in ((amjax, "jit_chunk_batch"), ("reference", "jit_train")):
         text = next(dump.glob(f"*.{module}.thunk_sequence_after_thunk_passes.txt")).read_text()
+        hlo = next(dump.glob(f"*.{module}.*gpu_after_optimizations.txt")).read_text()
+        trips = trip_counts(hlo, next(dump.glob(f"*.{module}.thunk_metadata.txt")).read_text())
         thunks = parse_thunks(text)
         kernels, copies = launches(thunks)
         print(f"## {name}\n\n- program: {kernels} kernels + {copies} copies outside its loops")
-        print("\n".join(report(thunks)) + "\n")
+        print("\n".join(report(thunks, trips=trips)) + "\n")
     print(f"XLA's dumps: {dump}")
     return 0
 

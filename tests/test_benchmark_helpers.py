@@ -257,9 +257,33 @@ def test_gpu_thunks_counts_launches_per_loop_iteration_and_branch():
     assert gpu_thunks.report(thunks) == [
         "- loop: 3 kernels + 2 copies per iteration",
         "  - loop: 1 kernels + 1 copies per iteration",
-        "  - conditional: false_branch: 1 kernels + 0 copies; true_branch: 0 kernels + 2 copies",
+        "  - conditional (the host reads its branch): false_branch: 1 kernels + 0 copies; "
+        "true_branch: 0 kernels + 2 copies",
     ]
     assert gpu_thunks.SPEC.read_text().count("core_count: 132") == 1  # the target it compiles for ships with it
+
+
+def test_gpu_thunks_names_each_loops_trip_count():
+    """A loop's trip count comes from its `while` in the optimised HLO (XLA's `known_trip_count`), matched to the
+    thunk through `thunk_metadata.txt`; a loop without one reads its predicate on the host."""
+    from benchmarks import gpu_thunks
+
+    hlo = (
+        "  %while.9 = (s32[], f32[8]{0}) while(%tuple.1), condition=%region_1, body=%region_2, "
+        'backend_config={"known_trip_count":{"n":"125"},"known_init_step":{"init":"0","step":"1"}}\n'
+        "  %fusion.3 = f32[8]{0} fusion(%p), kind=kLoop\n"
+        "  ROOT %while.12 = (pred[], f32[8]{0}) while(%tuple.2), condition=%region_3, body=%region_4\n"
+    )
+    metadata = "\n".join(
+        f'thunk_metadata {{\n  thunk_info {{\n    profile_annotation: "{name}"\n    thunk_id: {i}\n  }}\n}}'
+        for name, i in (("while.9", 26), ("fusion.3", 27), ("while.12", 71))
+    )
+    trips = gpu_thunks.trip_counts(hlo, metadata)
+    assert trips == {26: 125, 71: None}
+    assert gpu_thunks.report(gpu_thunks.parse_thunks(THUNK_SEQUENCE), trips=trips)[:2] == [
+        "- loop (125 iterations): 3 kernels + 2 copies per iteration",
+        "  - loop (count unknown: a host read per condition): 1 kernels + 1 copies per iteration",
+    ]
 
 
 def test_replicate_time_says_what_a_timed_out_case_measured():
