@@ -14,12 +14,13 @@
 #                      cases of issue 58's table; ~37 s a case, ~6 minutes both);
 #   demo               `python -m train demo`'s wall time (~1 minute);
 #   dqn-variants       Dueling DQN at 4,096 x 2,500 (profiled) and 1,024 x 51,200 (timed), amjax with each of
-#                      GPU_VARIANTS (default conditional-updates: the Q-learners' branches as conditionals, which
-#                      copy the learning state on a GPU; command-buffers: XLA's command buffers holding conditionals
-#                      and loops, the reference compiled so too; benchmarks/gpu_profile.py's VARIANTS and
-#                      COMPILER_VARIANTS)
+#                      GPU_VARIANTS (default command-buffers,conditional-updates. command-buffers: XLA's command
+#                      buffers holding loops too, so amjax's branches, loops, run on the device as the reference's
+#                      conditionals do by default; the reference compiled so too. conditional-updates: the
+#                      Q-learners' branches as conditionals, which copy the learning state on a GPU;
+#                      benchmarks/gpu_profile.py's VARIANTS and COMPILER_VARIANTS)
 #                      beside it and the reference, then 1,024 x 5,120 profiled (the learning updates' kernels);
-#                      ~6 minutes; records in dqn_variants.jsonl;
+#                      ~8 minutes; records in dqn_variants.jsonl;
 #   replicate          benchmarks/replicate_time.py's projection of `amjax replicate` (GPU_REPLICATE, default
 #                      LunarLander-v3's PPO and Dueling DQN; compiles dominate on a GPU: it did not finish in 170 s
 #                      on an H200), each env x agent (GPU_REPLICATE_CASES of them) with its share of the part's
@@ -35,8 +36,9 @@
 #   bash benchmarks/gpu.sh [OUT_DIR]        # default: benchmarks/results/gpu_<date>
 #   GPU_QUICK=1 bash benchmarks/gpu.sh /tmp/gpu-smoke   # tiny sizes: checks the script on a CPU in ~5 minutes
 #   GPU_PARTS="ppo dqn demo" bash benchmarks/gpu.sh     # the parts named only
-#   GPU_PARTS="dqn-variants replicate" GPU_REPLICATE="--env LunarLander-v3 --agent dqn" GPU_REPLICATE_CASES=1 \
-#       GPU_REPLICATE_S=220 bash benchmarks/gpu.sh     # the next session's DQN experiment and one projection
+#   GPU_PARTS=dqn-variants bash benchmarks/gpu.sh   # the next session's DQN experiment (one call), then:
+#   GPU_PARTS=replicate GPU_REPLICATE="--env LunarLander-v3 --agent dqn" GPU_REPLICATE_CASES=1 \
+#       GPU_REPLICATE_S=220 bash benchmarks/gpu.sh     # one projection (a second call)
 #   GPU_LIMIT_SCALE=3 GPU_QUICK=1 bash benchmarks/gpu.sh /tmp/gpu-smoke   # every time limit x3 (a busy CPU)
 #
 # On a machine that cannot reach the package index (jax, flax, optax, chex, pandas and pyarrow there, no gymnax),
@@ -107,14 +109,15 @@ export -f profile
 export out python big small long
 part profile 360 bash -c profile
 dqn_variants() {  # Dueling DQN, amjax and its variants beside the reference: both sizes, then a short profile at 1,024
-    local p=("$python" benchmarks/gpu_profile.py --agent dqn --variants "${GPU_VARIANTS:-conditional-updates}"
+    local p=("$python" benchmarks/gpu_profile.py --agent dqn --variants "$variants"
         --out "$out/dqn_variants.jsonl")
     "${p[@]}" --configs "$small" --steps 2500 && "${p[@]}" --configs "$big" --steps "$long" --no-profile --rounds 1 &&
         "${p[@]}" --configs "$big" --steps "$dqn_steps_short" --rounds 1
 }
 export -f dqn_variants
-export dqn_steps_short
-part dqn-variants 330 bash -c dqn_variants
+variants=${GPU_VARIANTS:-command-buffers,conditional-updates}
+export dqn_steps_short variants
+part dqn-variants 480 bash -c dqn_variants
 throughput=("$python" -m benchmarks.throughput --impls amjax,reference --no-sb3 --overhead "" --sizes "$sizes")
 part ppo 170 "${throughput[@]}" --agents ppo --steps $ppo_steps --out "$out/ppo.jsonl" --json "$out/ppo.json"
 part dqn 180 "${throughput[@]}" --agents dqn --steps $dqn_steps --out "$out/dqn.jsonl" --json "$out/dqn.json"
@@ -151,7 +154,7 @@ rendered() {  # rendered HEADING FILE.md PART...: under HEADING, FILE (its headi
 {
     rendered "Sweeps: amjax against the plain reference, in one process (benchmarks/gpu_profile.py)" \
         "$out/profile.md" profile
-    rendered "Dueling DQN variants (benchmarks/gpu_profile.py --variants ${GPU_VARIANTS:-conditional-updates})" \
+    rendered "Dueling DQN variants (benchmarks/gpu_profile.py --variants $variants)" \
         "$out/dqn_variants.md" dqn-variants
     for agent in ppo dqn; do
         [ -e "$out/$agent.log" ] || continue  # a part not run

@@ -126,7 +126,8 @@ VARIANTS = {
 
 # XLA's kinds of GPU command buffer by default (`xla_gpu_enable_command_buffer` in XLA's debug_options_flags.cc, 2026),
 # then with conditionals and loops too: a conditional inside a command buffer (a CUDA graph's conditional node) runs
-# on the device, without reading its predicate back to the host.
+# on the device, without reading its predicate back to the host. jaxlib 0.10.2 records conditionals by default
+# already, loops not (read with gpu_thunks.py): the variant's gain is amjax's loops (`batching._update_once`).
 DEFAULT_COMMAND_BUFFER = "FUSION,CUBLAS,CUBLASLT,CUSTOM_CALL,CUDNN,DYNAMIC_SLICE_FUSION"
 
 # name -> (what it changes, XLA compiler options), compiled into amjax's programs and the reference's alike

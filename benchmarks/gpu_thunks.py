@@ -100,31 +100,37 @@ def trip_counts(hlo: str, metadata: str) -> dict[int, int | None]:
     }
 
 
-def report(thunks: list[Thunk], depth: int = 0, trips: dict[int, int | None] | None = None) -> list[str]:
+def report(
+    thunks: list[Thunk], depth: int = 0, trips: dict[int, int | None] | None = None, on_device: bool = False
+) -> list[str]:
     """Markdown list lines: each loop's kernels and copies per iteration (its trip count where `trips` has it) and
-    each conditional's per branch."""
+    each conditional's per branch; a loop or conditional inside a command buffer (a CUDA graph's conditional node:
+    `on_device`, for what it holds too) is decided on the device, without the host."""
     lines, pad, trips = [], "  " * depth, trips or {}
     for thunk in thunks:
         parts = {part.kind: part.children for part in thunk.children}
         if thunk.kind == "kWhile":
             kernels, copies = launches(parts.get("body", []))
-            if thunk.id not in trips:
+            if on_device:
+                when = " (in a command buffer: on the device)"
+            elif thunk.id not in trips:
                 when = ""
             elif trips[thunk.id] is None:
                 when = " (count unknown: a host read per condition)"
             else:
                 when = f" ({trips[thunk.id]} iterations)"
             lines.append(f"{pad}- loop{when}: {kernels} kernels + {copies} copies per iteration")
-            lines += report(parts.get("body", []), depth + 1, trips)
+            lines += report(parts.get("body", []), depth + 1, trips, on_device)
         elif thunk.kind == "kConditional":
             branches = [
                 f"{name}: {k} kernels + {c} copies" for name, (k, c) in ((n, launches(t)) for n, t in parts.items())
             ]
-            lines.append(f"{pad}- conditional (the host reads its branch): " + "; ".join(branches))
+            where = "in a command buffer: on the device" if on_device else "the host reads its branch"
+            lines.append(f"{pad}- conditional ({where}): " + "; ".join(branches))
             for body in parts.values():
-                lines += report(body, depth + 1, trips)
+                lines += report(body, depth + 1, trips, on_device)
         elif thunk.kind == "kCommandBuffer":
-            lines += report(thunk.children, depth, trips)
+            lines += report(thunk.children, depth, trips, on_device=True)
     return lines
 
 
@@ -159,16 +165,17 @@ def compile_programs(case: dict[str, Any], device: Any, variant: str | None) -> 
     def placed(tree: Any) -> Any:
         return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), tree)
 
+    options = gpu_profile.compiler_options(variant)  # a compiler variant compiles both programs so
     with gpu_profile.variant(variant):
         init, chunk = compiled_programs(
             ALGORITHMS[case["agent"]], chunk_evals(configs[0].num_evals, case["target_chunks"]), (device,), "gpu"
         )
-        chunk.lower(placed(stacked), placed(jax.eval_shape(init, stacked, keys))).compile()
+        chunk.lower(placed(stacked), placed(jax.eval_shape(init, stacked, keys))).compile(options)
         _compiled_programs.cache_clear()
     train, *args = reference_program(case)
     single = jax.sharding.SingleDeviceSharding(device)
     specs = [jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=single) for a in args]
-    train.trace(*specs).lower(lowering_platforms=("cuda",)).compile()
+    train.trace(*specs).lower(lowering_platforms=("cuda",)).compile(options)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -178,7 +185,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--agent", choices=("ppo", "dqn"), default="dqn")
     parser.add_argument("--configs", type=int, default=4096)
     parser.add_argument("--steps", type=int, default=2500)
-    parser.add_argument("--variant", choices=sorted(gpu_profile.VARIANTS), help="amjax with this change patched in")
+    parser.add_argument(
+        "--variant",
+        choices=sorted([*gpu_profile.VARIANTS, *gpu_profile.COMPILER_VARIANTS]),
+        help="amjax with this change patched in, or both programs compiled with these XLA options",
+    )
     parser.add_argument("--spec", type=Path, default=SPEC, help="the GPU's XLA target description (text proto)")
     args = parser.parse_args(argv)
 
@@ -189,8 +200,9 @@ def main(argv: list[str] | None = None) -> int:
     case = gpu_profile.sweep_case(args.agent, args.configs, args.steps)
     compile_programs(case, gpu_device(args.spec), args.variant)
     amjax = "amjax" + (f"+{args.variant}" if args.variant else "")
+    reference = "reference" + (f"+{args.variant}" if args.variant in gpu_profile.COMPILER_VARIANTS else "")
     print(f"# {args.agent} {args.configs} x {case['steps']}: launches on {args.spec.stem}, compiled without a GPU\n")
-    for name, module in ((amjax, "jit_chunk_batch"), ("reference", "jit_train")):
+    for name, module in ((amjax, "jit_chunk_batch"), (reference, "jit_train")):
         text = next(dump.glob(f"*.{module}.thunk_sequence_after_thunk_passes.txt")).read_text()
         hlo = next(dump.glob(f"*.{module}.*gpu_after_optimizations.txt")).read_text()
         trips = trip_counts(hlo, next(dump.glob(f"*.{module}.thunk_metadata.txt")).read_text())

@@ -260,7 +260,39 @@ def test_gpu_thunks_counts_launches_per_loop_iteration_and_branch():
         "  - conditional (the host reads its branch): false_branch: 1 kernels + 0 copies; "
         "true_branch: 0 kernels + 2 copies",
     ]
-    assert gpu_thunks.SPEC.read_text().count("core_count: 132") == 1  # the target it compiles for ships with it
+    spec = gpu_thunks.SPEC.read_text()
+    assert spec.count("core_count: 132") == 1  # the target it compiles for ships with it
+    # with CUDA versions: below 12.3 XLA would keep every conditional and loop out of command buffers (on the host)
+    assert 'driver_version: "13.0.0"' in spec and 'runtime_version: "12.8.0"' in spec
+
+
+IN_A_COMMAND_BUFFER = """\
+000: kCommandBuffer [source | sink]
+    005: kWhile [source | next=007 (1)]
+condition:
+        No thunks.      body:
+        000: kCommandBuffer [source | sink]
+            006: kCustomKernel [source | sink] loop_add_fusion grid: [1, 1, 1] threads: [1, 1, 1]
+    007: kConditional [prev=005 (1) | sink]
+      false_branch:
+        008: kCustomKernel [source | sink] loop_add_fusion_1 grid: [1, 1, 1] threads: [1, 1, 1]
+      true_branch:
+        009: kCopy [source | sink] kCopy
+"""
+
+
+def test_gpu_thunks_says_which_branches_a_command_buffer_holds():
+    """A loop or conditional that XLA recorded into a command buffer (`xla_gpu_enable_command_buffer` with WHILE and
+    CONDITIONAL: CUDA graph conditional nodes) is decided on the device, whatever its trip count."""
+    from benchmarks import gpu_thunks
+
+    thunks = gpu_thunks.parse_thunks(IN_A_COMMAND_BUFFER)
+    assert gpu_thunks.launches(thunks) == (0, 0)  # what the loop and the branches launch is listed apart
+    assert gpu_thunks.report(thunks, trips={5: None}) == [
+        "- loop (in a command buffer: on the device): 1 kernels + 0 copies per iteration",
+        "- conditional (in a command buffer: on the device): false_branch: 1 kernels + 0 copies; "
+        "true_branch: 0 kernels + 1 copies",
+    ]
 
 
 def test_gpu_thunks_names_each_loops_trip_count():
