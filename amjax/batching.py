@@ -197,8 +197,10 @@ def _update_once(pred: jax.Array, update: Callable, state: Any, *args: Any) -> A
     ``"gpu"`` strategy's branch of `update_where`. XLA's GPU compiler gives a conditional fresh output buffers, so
     a loop-carried state that goes through one is copied at every iteration, into the conditional's operands and,
     in a branch that keeps it, into its outputs (a Dueling DQN update's parameters, Adam's moments and target
-    network: four copies of every parameter); a loop updates its state in place. It reads one more predicate back
-    to the host (two where ``pred`` holds, one where not), the price of the copies it saves."""
+    network: four copies of every parameter); a loop updates its state in place. Its predicate is read back to the
+    host (twice where ``pred`` holds, once where not) unless XLA records the loop into a command buffer, which by
+    default it does for a conditional and not for a loop (`benchmarks/gpu_thunks.py`): the price of the copies
+    it saves."""
 
     def once(carry: tuple[jax.Array, Any]) -> tuple[jax.Array, Any]:
         flag, state = carry

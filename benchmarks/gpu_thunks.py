@@ -1,9 +1,10 @@
 """What a GPU would run, read without one: amjax's sweep chunk program and the plain reference compiled for an NVIDIA
 GPU on this machine (XLA's deviceless compilation), and XLA's thunk sequence (the kernels, copies, loops and
 conditionals the GPU runtime launches) summarised per loop iteration and per branch, each loop with its trip count
-where XLA knows it. A loop of unknown count and a conditional each make the host wait for the device (it copies
-the predicate or branch index back before it launches more): a loop once per run of its condition, a conditional
-once.
+where XLA knows it, and which loops and conditionals a command buffer holds. Outside a command buffer a loop of
+unknown count and a conditional each make the host wait for the device (it copies the predicate or branch index
+back before it launches more): a loop once per run of its condition, a conditional once. Inside one (a CUDA graph's
+conditional node, CUDA 12.3 or later) the device decides.
 
     pip install "jax-cuda13-plugin==$(python -c 'import jax; print(jax.__version__)')" \\
         "jax-cuda13-pjrt==$(python -c 'import jax; print(jax.__version__)')"   # the compiler (~130 MB), no GPU needed
@@ -87,7 +88,8 @@ def launches(thunks: list[Thunk]) -> tuple[int, int]:
 def trip_counts(hlo: str, metadata: str) -> dict[int, int | None]:
     """{thunk_id: iterations} of each loop: XLA's `known_trip_count` of its `while` instruction in the optimised HLO
     (`*_gpu_after_optimizations.txt`), None where XLA does not know it. A loop of known count runs its body that many
-    times; any other loop copies its predicate to the host and waits for it after every run of its condition."""
+    times; any other loop outside a command buffer copies its predicate to the host and waits for it after every
+    run of its condition."""
     counts = {}
     for line in hlo.splitlines():
         if (name := re.match(r"\s*(?:ROOT )?%(\S+) = .* while\(", line)) is not None:
