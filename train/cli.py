@@ -12,7 +12,7 @@ import dataclasses
 import os
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 import jax
 import pandas as pd
@@ -378,10 +378,13 @@ def interruptible_main(prog: str) -> int:
     line saying what is kept and exit status 130, not a traceback. Python sees the signal once the compiled call
     running in the main thread returns (up to a chunk's time); the finished batches and the checkpointed chunks
     are on disk, so a rerun of the same command resumes from them. The process then ends at once (`os._exit`):
-    waiting for the runner's threads, still inside XLA, would abort it ("terminate called ...")."""
-    try:
-        return main(prog=prog)
-    except KeyboardInterrupt:
+    waiting for the runner's threads, still inside XLA, would abort it ("terminate called ...").
+
+    Python raises the interrupt wherever the main thread is; inside a garbage-collector callback (jax registers
+    one) or a `__del__` it would only print "Exception ignored" and training would go on. Such an interrupt reaches
+    `sys.unraisablehook`, which here stops the process the same way."""
+
+    def stop() -> NoReturn:
         print(
             f"\n{prog}: interrupted. The finished batches and checkpointed chunks are kept on disk; rerun the "
             "same command to resume",
@@ -390,6 +393,21 @@ def interruptible_main(prog: str) -> int:
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(130)
+
+    previous_hook = sys.unraisablehook
+
+    def stop_on_swallowed_interrupt(unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            stop()
+        previous_hook(unraisable)
+
+    sys.unraisablehook = stop_on_swallowed_interrupt
+    try:
+        return main(prog=prog)
+    except KeyboardInterrupt:
+        stop()
+    finally:
+        sys.unraisablehook = previous_hook
 
 
 def console_main() -> int:

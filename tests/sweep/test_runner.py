@@ -312,6 +312,33 @@ def test_ctrl_c_stops_with_a_message_and_the_rerun_resumes(tmp_path, tiny_sweep_
     assert len(results) == 2 * 32 and not results.duplicated(["config_id", "env_steps"]).any()
 
 
+def test_ctrl_c_inside_a_garbage_collector_callback_still_stops(tmp_path):
+    """A SIGINT whose KeyboardInterrupt Python raises inside a gc callback (jax registers one) is "ignored" by
+    Python; the command must still stop with status 130 and the resume line, not train on (CI saw this once)."""
+    script = """
+import gc, signal, sys, time
+import train.cli
+
+def main(prog):
+    def interrupt_during_collection(phase, info):
+        if phase == "start":
+            gc.callbacks.remove(interrupt_during_collection)
+            signal.raise_signal(signal.SIGINT)
+    gc.callbacks.append(interrupt_during_collection)
+    gc.collect()
+    print("trained on", flush=True)
+    return 0
+
+train.cli.main = main
+sys.exit(train.cli.interruptible_main("amjax"))
+"""
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}
+    finished = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+    assert finished.returncode == 130, finished.stderr
+    assert "trained on" not in finished.stdout
+    assert "amjax: interrupted" in finished.stderr and "rerun the same command to resume" in finished.stderr
+
+
 def test_failed_write_keeps_the_old_file(tmp_path):
     path = tmp_path / "table.csv"
     path.write_text("old")
