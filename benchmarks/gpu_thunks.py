@@ -113,14 +113,19 @@ def report(
         parts = {part.kind: part.children for part in thunk.children}
         if thunk.kind == "kWhile":
             kernels, copies = launches(parts.get("body", []))
+            count = trips.get(thunk.id)
             if on_device:
-                when = " (in a command buffer: on the device)"
+                when = (
+                    f" ({count} iterations, in a command buffer: on the device)"
+                    if count
+                    else " (in a command buffer: on the device)"
+                )
             elif thunk.id not in trips:
                 when = ""
-            elif trips[thunk.id] is None:
+            elif count is None:
                 when = " (count unknown: a host read per condition)"
             else:
-                when = f" ({trips[thunk.id]} iterations)"
+                when = f" ({count} iterations)"
             lines.append(f"{pad}- loop{when}: {kernels} kernels + {copies} copies per iteration")
             lines += report(parts.get("body", []), depth + 1, trips, on_device)
         elif thunk.kind == "kConditional":

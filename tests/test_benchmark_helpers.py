@@ -293,6 +293,9 @@ def test_gpu_thunks_says_which_branches_a_command_buffer_holds():
         "- conditional (in a command buffer: on the device): false_branch: 1 kernels + 0 copies; "
         "true_branch: 0 kernels + 1 copies",
     ]
+    assert gpu_thunks.report(thunks, trips={5: 200})[0] == (
+        "- loop (200 iterations, in a command buffer: on the device): 1 kernels + 0 copies per iteration"
+    )
 
 
 def test_gpu_thunks_names_each_loops_trip_count():
