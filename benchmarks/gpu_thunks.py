@@ -117,7 +117,7 @@ def report(
             if on_device:
                 when = (
                     f" ({count} iterations, in a command buffer: on the device)"
-                    if count
+                    if count is not None
                     else " (in a command buffer: on the device)"
                 )
             elif thunk.id not in trips:

@@ -312,11 +312,11 @@ def test_ctrl_c_stops_with_a_message_and_the_rerun_resumes(tmp_path, tiny_sweep_
     assert len(results) == 2 * 32 and not results.duplicated(["config_id", "env_steps"]).any()
 
 
-def test_ctrl_c_inside_a_garbage_collector_callback_still_stops(tmp_path):
+def test_ctrl_c_inside_a_garbage_collector_callback_still_stops():
     """A SIGINT whose KeyboardInterrupt Python raises inside a gc callback (jax registers one) is "ignored" by
     Python; the command must still stop with status 130 and the resume line, not train on (CI saw this once)."""
     script = """
-import gc, signal, sys, time
+import gc, signal, sys
 import train.cli
 
 def main(prog):
